@@ -1,0 +1,43 @@
+# Two commands for a newcomer: `make demo` and `make test`. Both set up first.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+PYTHON ?= python3
+VENV := $(CURDIR)/.venv
+VENV_STAMP := $(VENV)/.stance-requirements
+BUILD_STAMP := $(CURDIR)/install/.stance-build
+WORKSPACE_SOURCES := $(shell find msgs src cmake colcon.meta -type f -not -path '*/__pycache__/*' -not -name '*.pyc' 2>/dev/null)
+ENV := source $(CURDIR)/env.sh &&
+
+.PHONY: help setup demo test bench clean
+help:
+	@echo "make demo   set up, then run the PIK demo on Talos (bag + plots)"
+	@echo "make test   set up, then run every test"
+	@echo "make bench  set up, then run the benchmarks"
+	@echo "make setup  only build .venv and the colcon workspace"
+
+setup: $(BUILD_STAMP)
+
+$(VENV_STAMP): requirements.txt
+	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.txt
+	touch $@
+
+$(BUILD_STAMP): $(VENV_STAMP) $(WORKSPACE_SOURCES)
+	export VIRTUAL_ENV=$(VENV) PATH=$(VENV)/bin:$$PATH AMENT_PREFIX_PATH=$(VENV) CMAKE_PREFIX_PATH=$(VENV) && \
+	colcon --log-base build/log build --base-paths msgs src --build-base build --install-base install \
+	  --event-handlers console_cohesion- summary+ status- \
+	  --cmake-args -DPython3_EXECUTABLE=$(VENV)/bin/python \
+	  -DCMAKE_PROJECT_INCLUDE=$(CURDIR)/cmake/drop_missing_include_dirs.cmake
+	touch $@
+
+demo: setup
+	$(ENV) stance demo
+
+test: setup
+	$(ENV) python -m pytest tests
+
+bench: setup
+	$(ENV) stance bench
+
+clean:
+	rm -rf build install log
