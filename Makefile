@@ -5,7 +5,10 @@ PYTHON ?= python3
 VENV := $(CURDIR)/.venv
 VENV_STAMP := $(VENV)/.stance-requirements
 BUILD_STAMP := $(CURDIR)/install/.stance-build
-WORKSPACE_SOURCES := $(shell find msgs src cmake colcon.meta -type f -not -path '*/__pycache__/*' -not -name '*.pyc' 2>/dev/null)
+# Python packages are symlink-installed: only packaging, interface and data files need a rebuild.
+WORKSPACE_SOURCES := colcon.meta $(shell find msgs src cmake -type f \( -name package.xml -o -name setup.py \
+  -o -name setup.cfg -o -name CMakeLists.txt -o -name '*.cmake' -o -name '*.msg' -o -name '*.srv' \
+  -o -name '*.action' -o -path '*/config/*' -o -path '*/resource/*' \) 2>/dev/null)
 ENV := source $(CURDIR)/env.sh &&
 
 .PHONY: help setup demo test bench clean
@@ -24,7 +27,7 @@ $(VENV_STAMP): requirements.txt
 
 $(BUILD_STAMP): $(VENV_STAMP) $(WORKSPACE_SOURCES)
 	export VIRTUAL_ENV=$(VENV) PATH=$(VENV)/bin:$$PATH AMENT_PREFIX_PATH=$(VENV) CMAKE_PREFIX_PATH=$(VENV) && \
-	colcon --log-base build/log build --base-paths msgs src --build-base build --install-base install \
+	colcon --log-base build/log build --base-paths msgs src --build-base build --install-base install --symlink-install \
 	  --event-handlers console_cohesion- summary+ status- \
 	  --cmake-args -DPython3_EXECUTABLE=$(VENV)/bin/python \
 	  -DCMAKE_PROJECT_INCLUDE=$(CURDIR)/cmake/drop_missing_include_dirs.cmake

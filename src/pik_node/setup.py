@@ -1,0 +1,20 @@
+from setuptools import find_packages, setup
+
+package_name = "pik_node"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    package_data={package_name: ["config/*.yaml"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", ["config/talos_demo.yaml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=False,
+    description="Prioritized IK node over ROS 2.",
+    license="Apache-2.0",
+    entry_points={"console_scripts": ["pik_node = pik_node.node:main"]},
+)

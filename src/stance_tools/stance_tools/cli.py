@@ -1,0 +1,32 @@
+"""The `stance` command: one entry point, one module per subcommand.
+
+Each subcommand module exposes ``add_arguments(parser)`` and ``run(args) -> int``; modules
+are imported only when their subcommand runs, so `stance plot` never loads rclpy.
+"""
+
+import argparse
+import importlib
+import sys
+
+SUBCOMMANDS = {
+    "record": ("stance_tools.record", "record topics to an MCAP bag (rosbag2 layout)"),
+    "plot": ("stance_tools.plot", "write PNG plots from a recorded bag"),
+}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="stance", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    chosen = (argv if argv is not None else sys.argv[1:])[:1]
+    for name, (module_name, help_text) in SUBCOMMANDS.items():
+        sub = commands.add_parser(name, help=help_text)
+        if chosen == [name]:
+            module = importlib.import_module(module_name)
+            module.add_arguments(sub)
+            sub.set_defaults(run=module.run)
+    args = parser.parse_args(argv)
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
