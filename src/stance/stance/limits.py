@@ -1,0 +1,128 @@
+"""Joint limit strategies for the clamping loop of the PIK (Raunhardt and Boulic).
+
+Each strategy looks at a candidate joint variation dq of the free (not yet fixed) limited
+joints and returns which of them must be fixed, and to what variation, before the
+prioritized solution is evaluated again with those fixed variations as highest-priority
+equality constraints.
+
+- none: nothing is ever fixed.
+- clamping (Baerlocher-Boulic): a joint whose q + dq leaves [lower, upper] is fixed on the
+  limit it crosses.
+- progressive: equations 1-5 of the paper. Inside a damping zone of thickness `activation`
+  next to a limit, a variation heading toward that limit is damped by the cubic
+  h = 3 d^2 - 2 d^3 of the normalized activation distance d; the damped variation
+  (1 - h) dq is fixed. A variation leaving the limits is clamped on them (h = 1).
+
+Only revolute (1-coordinate) joints are handled here; the floating base is never limited.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+
+@dataclass
+class LimitDecision:
+    """Joints (indices into the limited-joint arrays) to fix and their fixed variations."""
+
+    index: np.ndarray
+    dq: np.ndarray
+    h: np.ndarray     # damping value per fixed joint, 1 = clamped on the limit
+
+
+@numba.njit(cache=True)
+def cubic_step(d):
+    """h(d) = -2 d^3 + 3 d^2 for d clipped to [0, 1] (0 at the threshold, 1 at the limit)."""
+    d = min(max(d, 0.0), 1.0)
+    return d * d * (3.0 - 2.0 * d)
+
+
+@numba.njit(cache=True)
+def _progressive_decision(q, dq, lower, upper, lower_threshold, upper_threshold,
+                          thickness, free, progressive):
+    """Per joint: (must fix, fixed variation, h). Equations 2-5, then the clamping check;
+    with progressive False only the clamping check (h in {0, 1})."""
+    count = len(q)
+    fix = np.zeros(count, dtype=np.bool_)
+    varied = np.zeros(count)
+    h = np.zeros(count)
+    for j in range(count):
+        if not free[j]:
+            continue
+        q_next = q[j] + dq[j]
+        if q_next > upper[j]:
+            fix[j], varied[j], h[j] = True, upper[j] - q[j], 1.0
+        elif q_next < lower[j]:
+            fix[j], varied[j], h[j] = True, lower[j] - q[j], 1.0
+        elif progressive:
+            damping = 0.0
+            if q_next > q[j] and q[j] > upper_threshold[j]:
+                damping = cubic_step((q[j] - upper_threshold[j]) / thickness[j])
+            elif q_next < q[j] and q[j] < lower_threshold[j]:
+                damping = cubic_step((lower_threshold[j] - q[j]) / thickness[j])
+            if damping > 0.0:
+                fix[j], varied[j], h[j] = True, (1.0 - damping) * dq[j], damping
+    return fix, varied, h
+
+
+class RevoluteLimits:
+    """Bounds and damping thresholds of a robot's limited 1-DoF joints (rad or m).
+
+    activation: damping zone thickness next to each limit (rad), at most
+    `max_activation_fraction` of the joint's range so narrow joints keep a free middle.
+    """
+
+    def __init__(self, lower, upper, activation: float = 0.2,
+                 max_activation_fraction: float = 0.4):
+        self.lower = np.asarray(lower, dtype=float)
+        self.upper = np.asarray(upper, dtype=float)
+        thickness = np.minimum(activation, max_activation_fraction * (self.upper - self.lower))
+        self.lower_threshold = self.lower + thickness
+        self.upper_threshold = self.upper - thickness
+        self.thickness = thickness
+
+    def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
+        fix, varied, h = _progressive_decision(
+            q, dq, self.lower, self.upper, self.lower_threshold, self.upper_threshold,
+            self.thickness, free, progressive)
+        index = np.flatnonzero(fix)
+        return LimitDecision(index, varied[index], h[index])
+
+
+class NoLimits:
+    name = "none"
+
+    def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
+        empty = np.zeros(0)
+        return LimitDecision(np.zeros(0, dtype=int), empty, empty)
+
+
+class Clamping:
+    """Baerlocher-Boulic clamping: fix on the limit any joint that q + dq takes outside."""
+
+    name = "clamping"
+
+    def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
+        return limits.decide(q, dq, free, progressive=False)
+
+
+class ProgressiveClamping:
+    """Raunhardt-Boulic progressive clamping (eq. 1-5), then the clamping check."""
+
+    name = "progressive"
+
+    def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
+        return limits.decide(q, dq, free, progressive=True)
+
+
+STRATEGIES = {strategy.name: strategy for strategy in (NoLimits, Clamping, ProgressiveClamping)}
+
+
+def make_strategy(name: str):
+    if name not in STRATEGIES:
+        raise ValueError(f"unknown joint limit strategy {name!r} "
+                         f"(expected one of {', '.join(STRATEGIES)})")
+    return STRATEGIES[name]()

@@ -1,0 +1,242 @@
+"""Prioritized inverse kinematics with the clamping / progressive clamping loop (Fig. 8).
+
+One IK step from configuration q:
+  1. kinematics of q (Pinocchio: joint Jacobians, frame placements, CoM Jacobian);
+  2. the enabled tasks, grouped by priority, give one Level each (rows scaled by
+     sqrt(weight), targets = the tasks' capped steps);
+  3. clamping loop: solve the hierarchy; ask the limit strategy which free joints must be
+     damped or clamped; fix them as highest-priority equalities; repeat until none is new;
+  4. optionally scale dq uniformly so no joint exceeds its velocity limit over dt
+     (scaling toward q keeps every joint inside its limits);
+  5. q_next = integrate(q, dq) on the configuration manifold.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from .hierarchy import DampedHierarchy
+from .limits import RevoluteLimits, make_strategy
+from .stack import StackError, TaskSpec, validate_stack
+from .tasks import ComTask, make_task
+
+
+@dataclass
+class LevelReport:
+    priority: int
+    tasks: list
+    residual_norm: float        # |sqrt(w) e| stacked over the level's tasks, at q
+    step_residual_norm: float   # |J dq - step| the hierarchy left, task units
+
+
+@dataclass
+class StepResult:
+    q: np.ndarray               # configuration after the step
+    dq: np.ndarray              # applied variation (nv)
+    levels: list                # LevelReport per level with enabled tasks, highest first
+    task_errors: dict           # task name -> |e| over its selected axes at q (m, rad)
+    damping: np.ndarray         # h per limited joint (0 free, 1 clamped on a limit)
+    clamped: np.ndarray         # bool per limited joint: variation fixed in the loop
+    clamping_iterations: int    # hierarchy solutions evaluated
+    solve_time: float           # s
+    velocity_scale: float = 1.0  # uniform dq scaling applied for velocity limits
+
+
+@dataclass
+class _Layout:
+    """Row layout of the enabled tasks, rebuilt when the stack or an enable flag changes."""
+
+    tasks: list                 # (task, row slice, sqrt(weight)) in priority order
+    priorities: list
+    level_tasks: list
+    offsets: np.ndarray         # level row offsets (levels + 1)
+    task_starts: np.ndarray     # first row of each task
+    row_scale: np.ndarray       # sqrt(weight) per row
+
+
+class PIKSolver:
+    """Prioritized IK for one robot.
+
+    strategy: joint limit strategy name (none, clamping, progressive).
+    damping: damped least squares lambda. activation: damping zone thickness (rad).
+    dt: if set, joint variations respect the URDF velocity limits over dt seconds.
+    """
+
+    def __init__(self, robot, strategy: str = "progressive", damping: float = 1e-3,
+                 activation: float = 0.2, dt: float | None = None):
+        self.robot = robot
+        self.strategy = make_strategy(strategy)
+        self.hierarchy = DampedHierarchy(damping=damping)
+        self.limits = RevoluteLimits(robot.lower, robot.upper, activation=activation)
+        self.dt = dt
+        self.tasks = {}
+        self._needs_com = False
+        self._layout = self._make_layout()
+
+    @property
+    def strategy_name(self) -> str:
+        return self.strategy.name
+
+    def set_strategy(self, name: str) -> None:
+        self.strategy = make_strategy(name)
+
+    def compute_kinematics(self, q: np.ndarray) -> None:
+        """Fill robot.data for q: joint Jacobians, frame placements, CoM and its Jacobian."""
+        model, data = self.robot.model, self.robot.data
+        pin.computeJointJacobians(model, data, q)
+        pin.updateFramePlacements(model, data)
+        if self._needs_com:
+            pin.jacobianCenterOfMass(model, data, False)
+
+    def set_stack(self, specs, q: np.ndarray) -> None:
+        """Replace the task stack atomically. Tasks that keep their name, kind and frame keep
+        their targets; new tasks hold their value at q. On error nothing changes."""
+        specs = validate_stack(specs, self.robot.model.existFrame)
+        tasks = {spec.name: make_task(spec, self.robot) for spec in specs}
+        previous, self.tasks = self.tasks, tasks
+        self._needs_com = any(isinstance(task, ComTask) for task in tasks.values())
+        self.compute_kinematics(q)
+        for name, task in tasks.items():
+            old = previous.get(name)
+            if old is not None and (old.spec.kind, old.spec.frame) == (task.spec.kind,
+                                                                         task.spec.frame):
+                task.target = old.target
+            else:
+                task.hold(self.robot, q)
+        self._layout = self._make_layout()
+
+    def stack(self) -> list:
+        return [task.spec for task in self.tasks.values()]
+
+    def task(self, name: str):
+        if name not in self.tasks:
+            raise StackError(f"no task named {name!r} in the stack")
+        return self.tasks[name]
+
+    def set_enabled(self, name: str, enabled: bool) -> None:
+        self.task(name).enabled = bool(enabled)
+        self._layout = self._make_layout()
+
+    def step(self, q: np.ndarray) -> StepResult:
+        """One IK step from q (see module docstring)."""
+        start = time.perf_counter()
+        robot = self.robot
+        self.compute_kinematics(q)
+        jacobian, target, error = self._fill_levels(q)
+        offsets = self._layout.offsets
+
+        limited_v = robot.limited_v_index
+        q_limited = q[robot.limited_q_index]
+        fixed = np.zeros(len(limited_v), dtype=bool)
+        fixed_dq = np.zeros(len(limited_v))
+        h = np.zeros(len(limited_v))
+        iterations = 0
+        while True:
+            index = np.flatnonzero(fixed)
+            solution = self.hierarchy.solve_stacked(jacobian, target, offsets,
+                                                    limited_v[index], fixed_dq[index])
+            iterations += 1
+            decision = self.strategy.decide(self.limits, q_limited, solution.dq[limited_v],
+                                            ~fixed)
+            if len(decision.index) == 0:
+                break
+            fixed[decision.index] = True
+            fixed_dq[decision.index] = decision.dq
+            h[decision.index] = decision.h
+
+        dq = solution.dq
+        scale = self._velocity_scale(dq)
+        if scale < 1.0:
+            dq = dq * scale
+        q_next = pin.integrate(robot.model, q, dq)
+        levels, task_errors = self._reports(q, error, solution.step_residuals)
+        return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors, damping=h,
+                          clamped=fixed, clamping_iterations=iterations,
+                          solve_time=time.perf_counter() - start, velocity_scale=scale)
+
+    def task_poses(self, name: str):
+        """(target, current) SE3 of a frame or CoM task at the last computed kinematics
+        (CoM: translation only); (None, None) for a posture task."""
+        task = self.task(name)
+        return task.target_pose(), task.current_pose(self.robot)
+
+    def _make_layout(self) -> _Layout:
+        enabled = sorted((task for task in self.tasks.values() if task.enabled),
+                         key=lambda task: task.priority)
+        placed, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
+        row = 0
+        for task in enabled:
+            if not priorities or priorities[-1] != task.priority:
+                if priorities:
+                    offsets.append(row)
+                priorities.append(task.priority)
+                level_tasks.append([])
+            level_tasks[-1].append(task.name)
+            scale = float(np.sqrt(task.weight))
+            placed.append((task, slice(row, row + task.dimension), scale))
+            starts.append(row)
+            scales.extend([scale] * task.dimension)
+            row += task.dimension
+        if priorities:
+            offsets.append(row)
+        self._jacobian = np.zeros((row, self.robot.model.nv))
+        self._target = np.zeros(row)
+        self._error = np.zeros(row)
+        return _Layout(placed, priorities, level_tasks, np.array(offsets, dtype=np.int64),
+                       np.array(starts, dtype=np.int64), np.array(scales))
+
+    def _fill_levels(self, q):
+        """Write every enabled task's scaled rows into the stacked Jacobian and target."""
+        jacobian, target, error = self._jacobian, self._target, self._error
+        for task, rows, scale in self._layout.tasks:
+            task_jacobian, task_error = task.jacobian_and_error(self.robot, q)
+            jacobian[rows] = scale * task_jacobian
+            target[rows] = scale * task.step(task_error)
+            error[rows] = task_error
+        return jacobian, target, error
+
+    def _reports(self, q, error, step_residuals):
+        layout = self._layout
+        task_errors = {}
+        if len(error):
+            task_norms = np.sqrt(np.add.reduceat(error * error, layout.task_starts))
+            weighted = error * layout.row_scale
+            level_norms = np.sqrt(np.add.reduceat(weighted * weighted, layout.offsets[:-1]))
+            task_errors = {task.name: float(norm)
+                           for (task, _, _), norm in zip(layout.tasks, task_norms)}
+        else:
+            level_norms = []
+        levels = [LevelReport(priority, names, float(norm), float(residual))
+                  for priority, names, norm, residual in zip(
+                      layout.priorities, layout.level_tasks, level_norms, step_residuals)]
+        for task in self.tasks.values():
+            if not task.enabled:
+                _, task_error = task.jacobian_and_error(self.robot, q)
+                task_errors[task.name] = float(np.linalg.norm(task_error))
+        return levels, task_errors
+
+    def _velocity_scale(self, dq: np.ndarray) -> float:
+        if self.dt is None:
+            return 1.0
+        bound = self.robot.velocity_limit * self.dt
+        usable = bound > 0
+        if not np.any(usable):
+            return 1.0
+        ratio = np.abs(dq[self.robot.limited_v_index][usable]) / bound[usable]
+        worst = float(ratio.max(initial=0.0))
+        return 1.0 / worst if worst > 1.0 else 1.0
+
+
+def default_stack_specs() -> list:
+    """The Talos demo stack: feet fixed > CoM over the feet > right hand > posture."""
+    return [
+        TaskSpec("left_foot", "pose", "left_sole_link", priority=0, gain=0.5),
+        TaskSpec("right_foot", "pose", "right_sole_link", priority=0, gain=0.5),
+        TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
+        TaskSpec("right_hand", "pose", "gripper_right_base_link", priority=2, gain=0.2),
+        TaskSpec("posture", "posture", priority=3, gain=0.05),
+    ]

@@ -1,0 +1,232 @@
+"""IK tasks: one class per task kind. A task turns the robot's current kinematics into a
+Jacobian J (rows x nv) and an error e (rows), both restricted to its selected axes.
+
+Frames: errors and Jacobians are expressed in the world-aligned frame at the task frame's
+origin (Pinocchio LOCAL_WORLD_ALIGNED): rows x, y, z in meters, rx, ry, rz in radians.
+The solver asks for J dq = step(e): the error scaled by the gain, capped in norm.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pinocchio as pin
+
+from .stack import AXES, TaskSpec
+
+
+class TargetError(ValueError):
+    """A task target is malformed (non-finite, wrong size, unknown joint, bad quaternion)."""
+
+
+def require_finite(values, what: str) -> np.ndarray:
+    array = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(array)):
+        raise TargetError(f"{what} contains NaN or infinite values")
+    return array
+
+
+def pose_from_position_quaternion(position, quaternion_xyzw, tolerance: float = 1e-3) -> pin.SE3:
+    """SE3 from a position (m) and a unit quaternion (x, y, z, w); rejects |q| - 1 > tolerance."""
+    position = require_finite(position, "position")
+    quaternion = require_finite(quaternion_xyzw, "orientation")
+    norm = float(np.linalg.norm(quaternion))
+    if abs(norm - 1.0) > tolerance:
+        raise TargetError(f"orientation quaternion is not unit (norm {norm:.6g})")
+    x, y, z, w = quaternion / norm
+    return pin.SE3(pin.Quaternion(w, x, y, z).toRotationMatrix(), position)
+
+
+class Task:
+    """Base class. Subclasses set `self.rows` (selected row indices) and implement
+    `jacobian_and_error(robot, q)` on kinematics already computed in robot.data."""
+
+    max_step = 0.05  # norm cap of one step's task correction, task units
+
+    def __init__(self, spec: TaskSpec, robot):
+        self.spec = spec
+        self.name = spec.name
+        self.priority = spec.priority
+        self.weight = spec.weight
+        self.gain = spec.gain
+        self.enabled = spec.enabled
+
+    @property
+    def dimension(self) -> int:
+        return len(self.rows)
+
+    def step(self, error: np.ndarray) -> np.ndarray:
+        """Desired task variation for one IK step: gain * error, norm capped at max_step."""
+        step = self.gain * error
+        norm = math.sqrt(step @ step)
+        return step * (self.max_step / norm) if norm > self.max_step else step
+
+    def hold(self, robot, q) -> None:
+        """Set the target to the current value (kinematics of q already in robot.data)."""
+        raise NotImplementedError
+
+    def jacobian_and_error(self, robot, q):
+        raise NotImplementedError
+
+    def current_pose(self, robot):
+        """Achieved value as SE3 for status (CoM: translation only); None if not a pose."""
+        return None
+
+    def target_pose(self):
+        return None
+
+
+class FrameTask(Task):
+    """Position and/or orientation of a robot frame; target pin.SE3 in the world frame."""
+
+    max_linear_step = 0.02   # m per IK step
+    max_angular_step = 0.05  # rad per IK step
+
+    def __init__(self, spec: TaskSpec, robot):
+        super().__init__(spec, robot)
+        self.frame_id = robot.frame_id(spec.frame)
+        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()], dtype=int)
+        self._all_rows = len(self.rows) == 6
+        self._needs_rotation = bool(np.any(self.rows >= 3))
+        self._linear = np.flatnonzero(self.rows < 3)
+        self._angular = np.flatnonzero(self.rows >= 3)
+        self.target = pin.SE3.Identity()
+
+    @property
+    def target(self) -> pin.SE3:
+        return self._target
+
+    @target.setter
+    def target(self, pose: pin.SE3) -> None:
+        self._target = pose.copy()
+        self._target_translation = pose.translation.copy()
+        self._target_rotation = pose.rotation.copy()
+
+    def hold(self, robot, q) -> None:
+        self.target = robot.data.oMf[self.frame_id]
+
+    def set_target(self, pose: pin.SE3) -> None:
+        require_finite(pose.homogeneous, f"target of task {self.name!r}")
+        self.target = pose
+
+    def full_error(self, robot) -> np.ndarray:
+        """6-D error [p_target - p; log3(R_target R^T)], world-aligned (m, rad)."""
+        current = robot.data.oMf[self.frame_id]
+        error = np.zeros(6)
+        error[:3] = self._target_translation - current.translation
+        if self._needs_rotation:
+            error[3:] = pin.log3(self._target_rotation @ current.rotation.T)
+        return error
+
+    def jacobian_and_error(self, robot, q):
+        jacobian = pin.getFrameJacobian(robot.model, robot.data, self.frame_id,
+                                        pin.LOCAL_WORLD_ALIGNED)
+        error = self.full_error(robot)
+        if self._all_rows:
+            return jacobian, error
+        return jacobian[self.rows], error[self.rows]
+
+    def step(self, error: np.ndarray) -> np.ndarray:
+        """Cap translation and rotation rows separately (m and rad per step)."""
+        step = self.gain * error
+        for group, cap in ((self._linear, self.max_linear_step),
+                           (self._angular, self.max_angular_step)):
+            part = step[group]
+            norm = math.sqrt(part @ part)
+            if norm > cap:
+                step[group] = part * (cap / norm)
+        return step
+
+    def current_pose(self, robot):
+        return robot.data.oMf[self.frame_id].copy()
+
+    def target_pose(self):
+        return self._target.copy()
+
+
+class PoseTask(FrameTask):
+    """Frame position and orientation (axes x, y, z, rx, ry, rz)."""
+
+
+class PositionTask(FrameTask):
+    """Frame origin position (axes x, y, z); the target's rotation is ignored."""
+
+
+class OrientationTask(FrameTask):
+    """Frame orientation (axes rx, ry, rz); the target's translation is ignored."""
+
+
+class ComTask(Task):
+    """Center of mass position in the world frame (m); target a 3-vector."""
+
+    max_step = 0.02  # m per IK step
+
+    def __init__(self, spec: TaskSpec, robot):
+        super().__init__(spec, robot)
+        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()], dtype=int)
+        self.target = np.zeros(3)
+
+    def hold(self, robot, q) -> None:
+        self.target = robot.data.com[0].copy()
+
+    def set_target(self, position) -> None:
+        position = require_finite(position, f"target of task {self.name!r}")
+        if position.shape != (3,):
+            raise TargetError(f"CoM target must have 3 values, got {position.shape}")
+        self.target = position.copy()
+
+    def jacobian_and_error(self, robot, q):
+        error = self.target - robot.data.com[0]
+        return robot.data.Jcom[self.rows], error[self.rows]
+
+    def current_pose(self, robot):
+        return pin.SE3(np.eye(3), robot.data.com[0].copy())
+
+    def target_pose(self):
+        return pin.SE3(np.eye(3), self.target.copy())
+
+
+class PostureTask(Task):
+    """Actuated joint positions (rad); the target is a full configuration vector."""
+
+    max_step = 0.05  # rad per IK step (norm over all joints)
+
+    def __init__(self, spec: TaskSpec, robot):
+        super().__init__(spec, robot)
+        self.rows = np.arange(robot.base_nv, robot.model.nv)
+        self.target = pin.neutral(robot.model)
+        self._jacobian = np.zeros((len(self.rows), robot.model.nv))
+        self._jacobian[:, robot.base_nv:] = np.eye(len(self.rows))
+
+    def hold(self, robot, q) -> None:
+        self.target = np.array(q, dtype=float)
+
+    def set_joint_targets(self, robot, positions: dict) -> None:
+        """Set targets of the named 1-DoF joints (rad); other joints keep theirs."""
+        target = self.target.copy()
+        for joint, value in positions.items():
+            if not robot.model.existJointName(joint):
+                raise TargetError(f"posture target names unknown joint {joint!r}")
+            joint_model = robot.model.joints[robot.model.getJointId(joint)]
+            if joint_model.nq != 1:
+                raise TargetError(f"joint {joint!r} is not a one-coordinate joint")
+            target[joint_model.idx_q] = float(require_finite(value, f"position of {joint!r}"))
+        self.target = target
+
+    def jacobian_and_error(self, robot, q):
+        error = pin.difference(robot.model, q, self.target)[robot.base_nv:]
+        return self._jacobian, error
+
+
+TASK_CLASSES = {
+    "pose": PoseTask,
+    "position": PositionTask,
+    "orientation": OrientationTask,
+    "com": ComTask,
+    "posture": PostureTask,
+}
+
+
+def make_task(spec: TaskSpec, robot) -> Task:
+    return TASK_CLASSES[spec.kind](spec, robot)
