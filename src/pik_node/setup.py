@@ -6,11 +6,10 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
-    package_data={package_name: ["config/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", ["config/talos_demo.yaml"]),
+        ("share/" + package_name + "/config", ["config/pik_node.yaml"]),
     ],
     install_requires=["setuptools"],
     zip_safe=False,

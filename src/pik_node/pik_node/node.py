@@ -1,2 +1,253 @@
-def main():
-    print("placeholder")
+"""pik_node: prioritized IK with progressive clamping as a ROS 2 node.
+
+Thin adapter over stance.PIKSolver. Each timer tick runs one IK step from the current
+configuration and publishes it. Targets arrive per task on /pik/tasks/<name>/target; the
+stack is replaced atomically through /pik/set_stack. Bad input is answered (service
+response, /pik/status.last_rejection, log) and never changes the node's state.
+
+Topics and services (QoS in parentheses):
+  sub  /pik/tasks/<name>/target   PoseStamped | PointStamped (com) | JointState (posture)
+                                  (reliable, keep last 10)
+  pub  /joint_states              sensor_msgs/JointState, actuated joints (reliable, 10)
+  pub  /pik/base_pose             geometry_msgs/PoseStamped, free-flyer in world (reliable, 10)
+  pub  /pik/status                stance_msgs/SolverStatus, one per step (reliable, 10)
+  pub  /robot_description         std_msgs/String, URDF (reliable, transient local)
+  srv  /pik/set_stack             stance_msgs/SetStack
+  srv  /pik/set_task_enabled      stance_msgs/SetTaskEnabled
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PointStamped, PoseStamped
+from rcl_interfaces.msg import (FloatingPointRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
+from stance.limits import STRATEGIES
+from stance.pik import DEMO_STACK_FILE
+from stance.stack import parse_stack_yaml
+from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
+from stance_msgs.srv import SetStack, SetTaskEnabled
+from std_msgs.msg import Header, String
+
+from .conversions import (check_world_frame, joint_targets_from_msg, pose_msg_from_se3,
+                          se3_from_pose_msg, spec_from_msg)
+
+RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+TARGET_TYPES = {"pose": PoseStamped, "position": PoseStamped, "orientation": PoseStamped,
+                "com": PointStamped, "posture": JointState}
+
+
+class PikNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("pik_node", **kwargs)
+        self._declare_parameters()
+        get = self.get_parameter
+        self.robot = Robot.load(get("robot").value)
+        self.q = self.robot.initial_configuration(get("initial_configuration").value or None)
+        rate = get("rate").value
+        self.solver = PIKSolver(
+            self.robot, strategy=get("strategy").value, damping=get("damping").value,
+            activation=get("activation").value,
+            dt=1.0 / rate if get("velocity_limits").value else None)
+        stack_file = get("stack_file").value or str(DEMO_STACK_FILE)
+        with open(stack_file) as stream:
+            self.solver.set_stack(parse_stack_yaml(stream.read(), self.robot.model.existFrame),
+                                  self.q)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.rejected_inputs = 0
+        self.last_rejection = ""
+        self.last_input_stamp = Time()
+        self.target_subscriptions = {}
+        self.joint_state_pub = self.create_publisher(JointState, "/joint_states", RELIABLE)
+        self.base_pose_pub = self.create_publisher(PoseStamped, "/pik/base_pose", RELIABLE)
+        self.status_pub = self.create_publisher(SolverStatus, "/pik/status", RELIABLE)
+        description_pub = self.create_publisher(String, "/robot_description", LATCHED)
+        description_pub.publish(String(data=self.robot.urdf))
+        self._description_pub = description_pub
+        self.create_service(SetStack, "/pik/set_stack", self._on_set_stack)
+        self.create_service(SetTaskEnabled, "/pik/set_task_enabled", self._on_set_enabled)
+        self._sync_target_subscriptions()
+        self._joint_names = [name for name, jid in zip(self.robot.actuated_joint_names,
+                                                       self.robot.actuated_joint_ids)
+                             if self.robot.model.joints[jid].nq == 1]
+        self._joint_q_index = np.array([self.robot.model.joints[self.robot.joint_id(name)].idx_q
+                                        for name in self._joint_names], dtype=int)
+        self.create_timer(1.0 / rate, self._on_tick)
+        self.get_logger().info(
+            f"robot {get('robot').value} (nv {self.robot.model.nv}), {len(self.solver.tasks)} "
+            f"tasks, strategy {self.solver.strategy_name}, {rate:g} Hz")
+
+    def _declare_parameters(self):
+        def describe(text, read_only=True, **extra):
+            return ParameterDescriptor(description=text, read_only=read_only, **extra)
+
+        self.declare_parameter("robot", "talos", describe(
+            "example-robot-data name or URDF path (free-flyer base)"))
+        self.declare_parameter("initial_configuration", "", describe(
+            "named reference configuration (SRDF), default half_sitting or neutral"))
+        self.declare_parameter("stack_file", "", describe(
+            "task stack YAML; empty = the Talos demo stack"))
+        self.declare_parameter("rate", 500.0, describe(
+            "IK steps per second (Hz)",
+            floating_point_range=[FloatingPointRange(from_value=1.0, to_value=2000.0)]))
+        self.declare_parameter("strategy", "progressive", describe(
+            f"joint limit strategy: {', '.join(STRATEGIES)}", read_only=False))
+        self.declare_parameter("damping", 1e-3, describe(
+            "damped least squares lambda",
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0)]))
+        self.declare_parameter("activation", 0.2, describe(
+            "progressive clamping zone thickness next to each limit (rad)",
+            floating_point_range=[FloatingPointRange(from_value=1e-3, to_value=1.0)]))
+        self.declare_parameter("velocity_limits", True, describe(
+            "scale each step so no joint exceeds its URDF velocity limit"))
+
+    def _on_set_parameters(self, parameters):
+        for parameter in parameters:
+            if parameter.name == "strategy":
+                if parameter.value not in STRATEGIES:
+                    return SetParametersResult(
+                        successful=False,
+                        reason=f"strategy must be one of {', '.join(STRATEGIES)}")
+                self.solver.set_strategy(parameter.value)
+        return SetParametersResult(successful=True)
+
+    # --- inputs -------------------------------------------------------------------------
+
+    def _sync_target_subscriptions(self):
+        """One target subscription per task, of the type its kind takes."""
+        wanted = {name: TARGET_TYPES[task.spec.kind] for name, task in self.solver.tasks.items()}
+        for name, (msg_type, subscription) in list(self.target_subscriptions.items()):
+            if wanted.get(name) is not msg_type:
+                self.destroy_subscription(subscription)
+                del self.target_subscriptions[name]
+        for name, msg_type in wanted.items():
+            if name not in self.target_subscriptions:
+                subscription = self.create_subscription(
+                    msg_type, f"/pik/tasks/{name}/target",
+                    lambda msg, task_name=name: self._on_target(task_name, msg), RELIABLE)
+                self.target_subscriptions[name] = (msg_type, subscription)
+
+    def _on_target(self, name, msg):
+        try:
+            task = self.solver.task(name)
+            kind = task.spec.kind
+            if kind == "posture":
+                task.set_joint_targets(self.robot, joint_targets_from_msg(msg.name,
+                                                                           msg.position))
+            elif kind == "com":
+                check_world_frame(msg.header.frame_id)
+                task.set_target((msg.point.x, msg.point.y, msg.point.z))
+            else:
+                check_world_frame(msg.header.frame_id)
+                task.set_target(se3_from_pose_msg(msg.pose))
+        except (TargetError, StackError) as error:
+            self._reject(f"target of task {name!r} rejected: {error}")
+            return
+        self.last_input_stamp = msg.header.stamp
+
+    def _on_set_stack(self, request, response):
+        try:
+            specs = [spec_from_msg(msg) for msg in request.tasks]
+            self.solver.set_stack(specs, self.q)
+        except (StackError, RobotModelError) as error:
+            response.success, response.message = False, f"stack rejected: {error}"
+            self._reject(response.message)
+            return response
+        self._sync_target_subscriptions()
+        response.success = True
+        response.message = f"stack of {len(specs)} tasks in force"
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_set_enabled(self, request, response):
+        try:
+            self.solver.set_enabled(request.name, request.enabled)
+        except StackError as error:
+            response.success, response.message = False, str(error)
+            self._reject(response.message)
+            return response
+        response.success = True
+        response.message = f"task {request.name!r} {'enabled' if request.enabled else 'disabled'}"
+        return response
+
+    def _reject(self, reason: str):
+        self.rejected_inputs += 1
+        self.last_rejection = reason
+        self.get_logger().warning(reason)
+
+    # --- IK loop ------------------------------------------------------------------------
+
+    def _on_tick(self):
+        result = self.solver.step(self.q)
+        self.q = result.q
+        stamp = self.get_clock().now().to_msg()
+        self.joint_state_pub.publish(JointState(
+            header=_header(stamp), name=self._joint_names,
+            position=self.q[self._joint_q_index].tolist()))
+        if self.robot.floating_base:
+            base = PoseStamped(header=_header(stamp, "world"))
+            base.pose.position.x, base.pose.position.y, base.pose.position.z = \
+                self.q[:3].tolist()
+            (base.pose.orientation.x, base.pose.orientation.y, base.pose.orientation.z,
+             base.pose.orientation.w) = self.q[3:7].tolist()
+            self.base_pose_pub.publish(base)
+        self.status_pub.publish(self._status(stamp, result))
+
+    def _status(self, stamp, result) -> SolverStatus:
+        status = SolverStatus(
+            header=_header(stamp, "world"), strategy=self.solver.strategy_name,
+            clamping_iterations=result.clamping_iterations, solve_time=result.solve_time,
+            joint_names=self.robot.limited_joint_names, damping=result.damping.tolist(),
+            clamped=result.clamped.tolist(), last_input_stamp=self.last_input_stamp,
+            rejected_inputs=self.rejected_inputs, last_rejection=self.last_rejection)
+        status.levels = [LevelStatus(priority=level.priority, tasks=level.tasks,
+                                     residual_norm=level.residual_norm,
+                                     step_residual_norm=level.step_residual_norm)
+                         for level in result.levels]
+        for name, task in self.solver.tasks.items():
+            task_status = TaskStatus(name=name, priority=task.priority, enabled=task.enabled,
+                                     error_norm=result.task_errors[name])
+            target, current = self.solver.task_poses(name)
+            if target is not None:
+                task_status.target = pose_msg_from_se3(target)
+                task_status.current = pose_msg_from_se3(current)
+            status.tasks.append(task_status)
+        return status
+
+
+def _header(stamp, frame_id=""):
+    return Header(stamp=stamp, frame_id=frame_id)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    try:
+        node = PikNode()
+    except (RobotModelError, StackError, OSError, ValueError) as error:
+        print(f"pik_node: cannot start: {error}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -14,14 +14,15 @@ One IK step from configuration q:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
 from .hierarchy import DampedHierarchy
 from .limits import RevoluteLimits, make_strategy
-from .stack import StackError, TaskSpec, validate_stack
+from .stack import StackError, parse_stack_yaml, validate_stack
 from .tasks import ComTask, make_task
 
 
@@ -231,12 +232,9 @@ class PIKSolver:
         return 1.0 / worst if worst > 1.0 else 1.0
 
 
+DEMO_STACK_FILE = Path(__file__).parent / "data" / "talos_demo_stack.yaml"
+
+
 def default_stack_specs() -> list:
     """The Talos demo stack: feet fixed > CoM over the feet > right hand > posture."""
-    return [
-        TaskSpec("left_foot", "pose", "left_sole_link", priority=0, gain=0.5),
-        TaskSpec("right_foot", "pose", "right_sole_link", priority=0, gain=0.5),
-        TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
-        TaskSpec("right_hand", "pose", "gripper_right_base_link", priority=2, gain=0.2),
-        TaskSpec("posture", "posture", priority=3, gain=0.05),
-    ]
+    return parse_stack_yaml(DEMO_STACK_FILE.read_text())

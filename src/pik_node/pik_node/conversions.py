@@ -1,0 +1,80 @@
+"""Conversions between stance_msgs / standard messages and the stance library.
+
+Every function here either returns library values or raises StackError / TargetError with
+a message meant for the sender; nothing here touches a node.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import Point, Pose, Quaternion
+from stance.stack import AXES, KINDS, StackError, TaskSpec
+from stance.tasks import TargetError, pose_from_position_quaternion
+from stance_msgs.msg import TaskSpec as TaskSpecMsg
+
+import pinocchio as pin
+
+WORLD_FRAMES = ("", "world")
+KIND_CODES = {
+    TaskSpecMsg.KIND_POSE: "pose",
+    TaskSpecMsg.KIND_POSITION: "position",
+    TaskSpecMsg.KIND_ORIENTATION: "orientation",
+    TaskSpecMsg.KIND_COM: "com",
+    TaskSpecMsg.KIND_POSTURE: "posture",
+}
+AXIS_BITS = {axis: 1 << index for index, axis in enumerate(AXES)}
+assert set(KIND_CODES.values()) == set(KINDS)
+
+
+def spec_from_msg(msg: TaskSpecMsg) -> TaskSpec:
+    """Library TaskSpec from a stance_msgs/TaskSpec (validated later with the stack)."""
+    if msg.kind not in KIND_CODES:
+        raise StackError(f"task {msg.name!r}: unknown kind code {msg.kind} "
+                         f"(expected {sorted(KIND_CODES)})")
+    if msg.axis_mask & ~0b111111:
+        raise StackError(f"task {msg.name!r}: axis_mask {msg.axis_mask} has unknown bits")
+    axes = tuple(axis for axis, bit in AXIS_BITS.items() if msg.axis_mask & bit)
+    return TaskSpec(name=msg.name, kind=KIND_CODES[msg.kind], frame=msg.frame,
+                    priority=msg.priority, weight=msg.weight, axes=axes, gain=msg.gain,
+                    enabled=msg.enabled)
+
+
+def msg_from_spec(spec: TaskSpec) -> TaskSpecMsg:
+    codes = {kind: code for code, kind in KIND_CODES.items()}
+    mask = sum(AXIS_BITS[axis] for axis in spec.axes)
+    return TaskSpecMsg(name=spec.name, kind=codes[spec.kind], frame=spec.frame,
+                       priority=spec.priority, weight=float(spec.weight), axis_mask=mask,
+                       gain=float(spec.gain), enabled=spec.enabled)
+
+
+def check_world_frame(frame_id: str) -> None:
+    if frame_id not in WORLD_FRAMES:
+        raise TargetError(f"unknown frame {frame_id!r}: targets are expressed in 'world'")
+
+
+def se3_from_pose_msg(pose: Pose) -> pin.SE3:
+    """pin.SE3 from geometry_msgs/Pose (m, unit quaternion); rejects NaN and non-unit q."""
+    position = (pose.position.x, pose.position.y, pose.position.z)
+    orientation = (pose.orientation.x, pose.orientation.y, pose.orientation.z,
+                   pose.orientation.w)
+    return pose_from_position_quaternion(position, orientation)
+
+
+def pose_msg_from_se3(transform: pin.SE3) -> Pose:
+    x, y, z, w = pin.Quaternion(transform.rotation).coeffs()
+    p = transform.translation
+    return Pose(position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                orientation=Quaternion(x=float(x), y=float(y), z=float(z), w=float(w)))
+
+
+def joint_targets_from_msg(names, positions) -> dict:
+    """Joint name -> position (rad) from sensor_msgs/JointState fields."""
+    if len(names) != len(positions):
+        raise TargetError(f"posture target has {len(names)} names but {len(positions)} "
+                          "positions")
+    if len(set(names)) != len(names):
+        raise TargetError("posture target repeats a joint name")
+    values = np.asarray(positions, dtype=float)
+    if not np.all(np.isfinite(values)):
+        raise TargetError("posture target contains NaN or infinite positions")
+    return dict(zip(names, values.tolist()))
