@@ -18,7 +18,9 @@ Topics and services (QoS in parentheses):
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 
 import numpy as np
 import rclpy
@@ -26,8 +28,9 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, PoseStamped
 from rcl_interfaces.msg import (FloatingPointRange, ParameterDescriptor,
                                 SetParametersResult)
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
@@ -231,8 +234,20 @@ def _header(stamp, frame_id=""):
     return Header(stamp=stamp, frame_id=frame_id)
 
 
+def spin_until_signal(node: Node) -> None:
+    """Spin until SIGINT or SIGTERM, then return so the caller shuts down in order."""
+    stop = threading.Event()
+    for signal_number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signal_number, lambda *_: stop.set())
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    while not stop.is_set() and rclpy.ok():
+        executor.spin_once(timeout_sec=0.1)
+    executor.shutdown()
+
+
 def main(args=None):
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = PikNode()
     except (RobotModelError, StackError, OSError, ValueError) as error:
@@ -240,9 +255,7 @@ def main(args=None):
         rclpy.try_shutdown()
         return 1
     try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        spin_until_signal(node)
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

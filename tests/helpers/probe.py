@@ -1,0 +1,113 @@
+"""A test-side rclpy node that talks to pik_node: collects its outputs, publishes targets,
+calls its services. Spins in a background thread; close() stops it."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import rclpy
+from geometry_msgs.msg import PointStamped, PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from stance_msgs.msg import SolverStatus
+from stance_msgs.srv import SetStack, SetTaskEnabled
+
+RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class PikProbe:
+    def __init__(self, name="pik_probe"):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = Node(name, context=self.context)
+        self.lock = threading.Lock()
+        self.joint_states = []
+        self.statuses = []
+        self.node.create_subscription(JointState, "/joint_states", self._on_joint_state,
+                                      RELIABLE)
+        self.node.create_subscription(SolverStatus, "/pik/status", self._on_status, RELIABLE)
+        self.set_stack_client = self.node.create_client(SetStack, "/pik/set_stack")
+        self.set_enabled_client = self.node.create_client(SetTaskEnabled,
+                                                          "/pik/set_task_enabled")
+        self._publishers = {}
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._running = True
+        self._thread.start()
+
+    def _spin(self):
+        while self._running and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def _on_joint_state(self, msg):
+        with self.lock:
+            self.joint_states.append((time.monotonic(), msg))
+
+    def _on_status(self, msg):
+        with self.lock:
+            self.statuses.append(msg)
+
+    def latest_status(self):
+        with self.lock:
+            return self.statuses[-1] if self.statuses else None
+
+    def latest_joint_state(self):
+        with self.lock:
+            return self.joint_states[-1][1] if self.joint_states else None
+
+    def status_count(self):
+        with self.lock:
+            return len(self.statuses)
+
+    def publish_target(self, task, msg):
+        topic = f"/pik/tasks/{task}/target"
+        if topic not in self._publishers:
+            self._publishers[topic] = self.node.create_publisher(type(msg), topic, RELIABLE)
+        publisher = self._publishers[topic]
+        deadline = time.monotonic() + 5.0
+        while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        publisher.publish(msg)
+
+    def call(self, client, request, timeout=10.0):
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f"service {client.srv_name} not available")
+        future = client.call_async(request)
+        deadline = time.monotonic() + timeout
+        while not future.done() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if not future.done():
+            raise TimeoutError(f"no response from {client.srv_name}")
+        return future.result()
+
+    def close(self):
+        self._running = False
+        self._thread.join(timeout=2.0)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def task_status(status, name):
+    for task in status.tasks:
+        if task.name == name:
+            return task
+    raise KeyError(name)
+
+
+def pose_target(pose, frame_id="world"):
+    msg = PoseStamped()
+    msg.header.frame_id = frame_id
+    msg.pose = pose
+    return msg
+
+
+def point_target(x, y, z, frame_id="world"):
+    msg = PointStamped()
+    msg.header.frame_id = frame_id
+    msg.point.x, msg.point.y, msg.point.z = x, y, z
+    return msg

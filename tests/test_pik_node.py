@@ -1,0 +1,208 @@
+"""pik_node over DDS in its own process: targets move the robot, bad input is rejected
+with a reason and changes nothing, the stack can be replaced and tasks toggled."""
+
+import copy
+import math
+
+import numpy as np
+import pytest
+from conftest import wait_until
+from helpers.probe import PikProbe, point_target, pose_target, task_status
+from sensor_msgs.msg import JointState
+from stance_msgs.msg import TaskSpec
+from stance_msgs.srv import SetStack, SetTaskEnabled
+
+DEMO_TASKS = ["left_foot", "right_foot", "com", "right_hand", "posture"]
+
+
+@pytest.fixture(scope="module")
+def pik(tmp_path_factory):
+    """One pik_node for the module (its survival across bad inputs is part of the test)."""
+    from conftest import ProcessGroup
+    group = ProcessGroup(tmp_path_factory.mktemp("pik"))
+    node = group.start("pik_node", name="pik_node")
+    probe = PikProbe()
+    try:
+        wait_until(lambda: probe.status_count() > 10 or node.poll() is not None, 60,
+                   what="pik_node status")
+        assert node.poll() is None, node.log_path.read_text()
+        yield node, probe
+    finally:
+        probe.close()
+        group.stop_all()
+        print(node.log_path.read_text())
+
+
+def fresh_status(probe, after=None):
+    """A status published after this call (so it reflects what was sent before)."""
+    count = probe.status_count()
+    wait_until(lambda: probe.status_count() > count + 5, 10, what="new status")
+    return probe.latest_status()
+
+
+def assert_alive(node, probe):
+    assert node.poll() is None, "pik_node exited"
+    fresh_status(probe)
+
+
+def test_target_moves_joint_states(pik):
+    node, probe = pik
+    before = fresh_status(probe)
+    hand = task_status(before, "right_hand")
+    start_positions = np.array(probe.latest_joint_state().position)
+    goal = copy.deepcopy(hand.target)
+    goal.position.x += 0.15
+    goal.position.z += 0.10
+    probe.publish_target("right_hand", pose_target(goal))
+
+    def reached():
+        hand_now = task_status(probe.latest_status(), "right_hand")
+        return math.isclose(hand_now.target.position.x, goal.position.x, abs_tol=1e-12) \
+            and hand_now.error_norm < 1e-4
+
+    wait_until(reached, 15, what="right hand to reach its new target")
+    status = probe.latest_status()
+    moved = np.abs(np.array(probe.latest_joint_state().position) - start_positions)
+    assert moved.max() > 0.05
+    for level in status.levels[:2]:  # feet and CoM stay satisfied
+        assert level.residual_norm < 1e-6
+
+
+def bad_pose_targets():
+    nan_position = pose_target(_unit_pose())
+    nan_position.pose.position.x = float("nan")
+    inf_position = pose_target(_unit_pose())
+    inf_position.pose.position.y = float("inf")
+    non_unit = pose_target(_unit_pose())
+    non_unit.pose.orientation.w = 0.5
+    unknown_frame = pose_target(_unit_pose(), frame_id="no_such_frame")
+    return {"nan": (nan_position, "NaN"), "inf": (inf_position, "infinite"),
+            "non-unit quaternion": (non_unit, "not unit"),
+            "unknown frame": (unknown_frame, "unknown frame")}
+
+
+def _unit_pose():
+    from geometry_msgs.msg import Pose
+    pose = Pose()
+    pose.position.x, pose.position.z, pose.orientation.w = 0.3, 0.9, 1.0
+    return pose
+
+
+@pytest.mark.parametrize("case", list(bad_pose_targets()))
+def test_bad_pose_target_is_rejected_and_changes_nothing(pik, case):
+    node, probe = pik
+    msg, reason = bad_pose_targets()[case]
+    before = fresh_status(probe)
+    probe.publish_target("right_hand", msg)
+    wait_until(lambda: probe.latest_status().rejected_inputs > before.rejected_inputs, 10,
+               what="the rejection in /pik/status")
+    after = probe.latest_status()
+    assert reason in after.last_rejection and "right_hand" in after.last_rejection
+    assert task_status(after, "right_hand").target == task_status(before, "right_hand").target
+    assert_alive(node, probe)
+
+
+@pytest.mark.parametrize("case", ["nan com", "unknown joint", "length mismatch", "nan joint"])
+def test_bad_com_and_posture_targets_are_rejected(pik, case):
+    node, probe = pik
+    before = fresh_status(probe)
+    if case == "nan com":
+        task, msg = "com", point_target(float("nan"), 0.0, 0.8)
+    else:
+        names, positions = {"unknown joint": (["no_such_joint"], [0.1]),
+                            "length mismatch": (["arm_right_4_joint"], [0.1, 0.2]),
+                            "nan joint": (["arm_right_4_joint"], [float("nan")])}[case]
+        task, msg = "posture", JointState(name=names, position=positions)
+    probe.publish_target(task, msg)
+    wait_until(lambda: probe.latest_status().rejected_inputs > before.rejected_inputs, 10,
+               what="the rejection in /pik/status")
+    assert task in probe.latest_status().last_rejection
+    assert_alive(node, probe)
+
+
+def demo_stack_msgs():
+    return [
+        TaskSpec(name="left_foot", kind=TaskSpec.KIND_POSE, frame="left_sole_link",
+                 priority=0, weight=1.0, gain=0.5, enabled=True),
+        TaskSpec(name="right_foot", kind=TaskSpec.KIND_POSE, frame="right_sole_link",
+                 priority=0, weight=1.0, gain=0.5, enabled=True),
+        TaskSpec(name="com", kind=TaskSpec.KIND_COM, priority=1, weight=1.0,
+                 axis_mask=TaskSpec.AXIS_X | TaskSpec.AXIS_Y, gain=0.2, enabled=True),
+        TaskSpec(name="right_hand", kind=TaskSpec.KIND_POSE, frame="gripper_right_base_link",
+                 priority=2, weight=1.0, gain=0.1, enabled=True),
+        TaskSpec(name="posture", kind=TaskSpec.KIND_POSTURE, priority=3, weight=1.0,
+                 gain=0.02, enabled=True),
+    ]
+
+
+def malformed_stacks():
+    def edited(index, **changes):
+        tasks = demo_stack_msgs()
+        for key, value in changes.items():
+            setattr(tasks[index], key, value)
+        return tasks
+
+    duplicate = demo_stack_msgs()
+    duplicate[1].name = "left_foot"
+    return {
+        "duplicate task": (duplicate, "duplicate task name"),
+        "unknown frame": (edited(3, frame="no_such_link"), "unknown frame"),
+        "negative priority": (edited(2, priority=-1), "priority"),
+        "priority too high": (edited(2, priority=1000), "priority"),
+        "unknown kind": (edited(2, kind=42), "unknown kind"),
+        "nan weight": (edited(3, weight=float("nan")), "weight"),
+        "zero gain": (edited(3, gain=0.0), "gain"),
+        "bad axis bits": (edited(2, axis_mask=255), "axis_mask"),
+        "axis not for kind": (edited(2, axis_mask=TaskSpec.AXIS_RX), "axis"),
+        "empty": ([], "empty"),
+        "bad name": (edited(3, name="right hand"), "name"),
+    }
+
+
+@pytest.mark.parametrize("case", list(malformed_stacks()))
+def test_malformed_stack_is_rejected_and_previous_stack_kept(pik, case):
+    node, probe = pik
+    tasks, reason = malformed_stacks()[case]
+    before = fresh_status(probe)
+    response = probe.call(probe.set_stack_client, SetStack.Request(tasks=tasks))
+    assert not response.success
+    assert reason in response.message
+    after = fresh_status(probe)
+    assert [t.name for t in after.tasks] == [t.name for t in before.tasks]
+    assert task_status(after, "right_hand").target == task_status(before, "right_hand").target
+    assert_alive(node, probe)
+
+
+def test_unknown_task_cannot_be_enabled(pik):
+    node, probe = pik
+    response = probe.call(probe.set_enabled_client,
+                          SetTaskEnabled.Request(name="no_such_task", enabled=False))
+    assert not response.success and "no_such_task" in response.message
+    assert_alive(node, probe)
+
+
+def test_stack_replacement_and_task_toggle(pik):
+    node, probe = pik
+    tasks = demo_stack_msgs()
+    tasks.append(TaskSpec(name="left_hand", kind=TaskSpec.KIND_POSITION,
+                          frame="gripper_left_base_link", priority=2, weight=1.0, gain=0.1,
+                          enabled=True))
+    response = probe.call(probe.set_stack_client, SetStack.Request(tasks=tasks))
+    assert response.success, response.message
+    status = fresh_status(probe)
+    assert [t.name for t in status.tasks] == DEMO_TASKS + ["left_hand"]
+    assert ["right_hand", "left_hand"] in [list(level.tasks) for level in status.levels]
+
+    left = task_status(status, "left_hand").target
+    left.position.z += 0.05
+    probe.publish_target("left_hand", pose_target(left))
+    wait_until(lambda: task_status(probe.latest_status(), "left_hand").error_norm < 1e-4
+               and abs(task_status(probe.latest_status(), "left_hand").target.position.z
+                       - left.position.z) < 1e-12, 15, what="left hand target reached")
+
+    response = probe.call(probe.set_enabled_client,
+                          SetTaskEnabled.Request(name="left_hand", enabled=False))
+    assert response.success
+    status = fresh_status(probe)
+    assert not task_status(status, "left_hand").enabled
+    assert all("left_hand" not in level.tasks for level in status.levels)
