@@ -7,7 +7,7 @@ a message meant for the sender; nothing here touches a node.
 from __future__ import annotations
 
 import numpy as np
-from geometry_msgs.msg import Point, Pose, Quaternion
+from geometry_msgs.msg import Pose
 from stance.stack import AXES, KINDS, StackError, TaskSpec
 from stance.tasks import TargetError, pose_from_position_quaternion
 from stance_msgs.msg import TaskSpec as TaskSpecMsg
@@ -58,13 +58,6 @@ def se3_from_pose_msg(pose: Pose) -> pin.SE3:
     orientation = (pose.orientation.x, pose.orientation.y, pose.orientation.z,
                    pose.orientation.w)
     return pose_from_position_quaternion(position, orientation)
-
-
-def pose_msg_from_se3(transform: pin.SE3) -> Pose:
-    x, y, z, w = pin.Quaternion(transform.rotation).coeffs()
-    p = transform.translation
-    return Pose(position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                orientation=Quaternion(x=float(x), y=float(y), z=float(z), w=float(w)))
 
 
 def joint_targets_from_msg(names, positions) -> dict:

@@ -1,7 +1,9 @@
 """pik_node: prioritized IK with progressive clamping as a ROS 2 node.
 
-Thin adapter over stance.PIKSolver. Each timer tick runs one IK step from the current
-configuration and publishes it. Targets arrive per task on /pik/tasks/<name>/target; the
+Thin adapter over stance.PIKSolver. A control thread paced by deadlines (not an executor
+timer, whose wake-up overhead would sit inside the loop) runs one IK step per period from
+the current configuration and publishes it; the executor thread only serves inputs, and a
+lock keeps the two consistent. Targets arrive per task on /pik/tasks/<name>/target; the
 stack is replaced atomically through /pik/set_stack. Bad input is answered (service
 response, /pik/status.last_rejection, log) and never changes the node's state.
 
@@ -21,8 +23,10 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 
 import numpy as np
+import pinocchio as pin
 import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, PoseStamped
@@ -41,8 +45,8 @@ from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
 
-from .conversions import (check_world_frame, joint_targets_from_msg, pose_msg_from_se3,
-                          se3_from_pose_msg, spec_from_msg)
+from .conversions import (check_world_frame, joint_targets_from_msg, se3_from_pose_msg,
+                          spec_from_msg)
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -87,7 +91,13 @@ class PikNode(Node):
                              if self.robot.model.joints[jid].nq == 1]
         self._joint_q_index = np.array([self.robot.model.joints[self.robot.joint_id(name)].idx_q
                                         for name in self._joint_names], dtype=int)
-        self.create_timer(1.0 / rate, self._on_tick)
+        self._lock = threading.Lock()
+        self._period = 1.0 / rate
+        self._stop = threading.Event()
+        self._loop_thread = threading.Thread(target=self._run_loop, name="pik_loop",
+                                             daemon=True)
+        self.overruns = 0
+        self._status_template = None
         self.get_logger().info(
             f"robot {get('robot').value} (nv {self.robot.model.nv}), {len(self.solver.tasks)} "
             f"tasks, strategy {self.solver.strategy_name}, {rate:g} Hz")
@@ -123,7 +133,8 @@ class PikNode(Node):
                     return SetParametersResult(
                         successful=False,
                         reason=f"strategy must be one of {', '.join(STRATEGIES)}")
-                self.solver.set_strategy(parameter.value)
+                with self._lock:
+                    self.solver.set_strategy(parameter.value)
         return SetParametersResult(successful=True)
 
     # --- inputs -------------------------------------------------------------------------
@@ -143,6 +154,10 @@ class PikNode(Node):
                 self.target_subscriptions[name] = (msg_type, subscription)
 
     def _on_target(self, name, msg):
+        with self._lock:
+            self._apply_target(name, msg)
+
+    def _apply_target(self, name, msg):
         try:
             task = self.solver.task(name)
             kind = task.spec.kind
@@ -163,7 +178,9 @@ class PikNode(Node):
     def _on_set_stack(self, request, response):
         try:
             specs = [spec_from_msg(msg) for msg in request.tasks]
-            self.solver.set_stack(specs, self.q)
+            with self._lock:
+                self.solver.set_stack(specs, self.q)
+                self._status_template = None
         except (StackError, RobotModelError) as error:
             response.success, response.message = False, f"stack rejected: {error}"
             self._reject(response.message)
@@ -176,7 +193,9 @@ class PikNode(Node):
 
     def _on_set_enabled(self, request, response):
         try:
-            self.solver.set_enabled(request.name, request.enabled)
+            with self._lock:
+                self.solver.set_enabled(request.name, request.enabled)
+                self._status_template = None
         except StackError as error:
             response.success, response.message = False, str(error)
             self._reject(response.message)
@@ -192,42 +211,88 @@ class PikNode(Node):
 
     # --- IK loop ------------------------------------------------------------------------
 
-    def _on_tick(self):
-        result = self.solver.step(self.q)
-        self.q = result.q
-        stamp = self.get_clock().now().to_msg()
-        self.joint_state_pub.publish(JointState(
-            header=_header(stamp), name=self._joint_names,
-            position=self.q[self._joint_q_index].tolist()))
+    def start_loop(self):
+        self._loop_thread.start()
+
+    def stop_loop(self):
+        self._stop.set()
+        self._loop_thread.join(timeout=5.0)
+
+    def _run_loop(self):
+        """One step per period; a late step shifts the schedule instead of bursting."""
+        next_tick = time.monotonic()
+        while not self._stop.is_set():
+            next_tick += self._period
+            self._tick()
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                missed = int(-delay // self._period)
+                self.overruns += missed
+                next_tick += missed * self._period
+
+    def _tick(self):
+        with self._lock:
+            result = self.solver.step(self.q)
+            self.q = result.q
+            stamp = self.get_clock().now().to_msg()
+            status = self._fill_status(stamp, result)
+        joint_state = JointState(header=_header(stamp), name=self._joint_names,
+                                 position=self.q[self._joint_q_index].tolist())
+        self.joint_state_pub.publish(joint_state)
         if self.robot.floating_base:
             base = PoseStamped(header=_header(stamp, "world"))
-            base.pose.position.x, base.pose.position.y, base.pose.position.z = \
-                self.q[:3].tolist()
-            (base.pose.orientation.x, base.pose.orientation.y, base.pose.orientation.z,
-             base.pose.orientation.w) = self.q[3:7].tolist()
+            fill_pose_msg(base.pose, self.q[:3], self.q[3:7])
             self.base_pose_pub.publish(base)
-        self.status_pub.publish(self._status(stamp, result))
+        self.status_pub.publish(status)
 
-    def _status(self, stamp, result) -> SolverStatus:
-        status = SolverStatus(
-            header=_header(stamp, "world"), strategy=self.solver.strategy_name,
-            clamping_iterations=result.clamping_iterations, solve_time=result.solve_time,
-            joint_names=self.robot.limited_joint_names, damping=result.damping.tolist(),
-            clamped=result.clamped.tolist(), last_input_stamp=self.last_input_stamp,
-            rejected_inputs=self.rejected_inputs, last_rejection=self.last_rejection)
-        status.levels = [LevelStatus(priority=level.priority, tasks=level.tasks,
-                                     residual_norm=level.residual_norm,
-                                     step_residual_norm=level.step_residual_norm)
-                         for level in result.levels]
-        for name, task in self.solver.tasks.items():
-            task_status = TaskStatus(name=name, priority=task.priority, enabled=task.enabled,
-                                     error_norm=result.task_errors[name])
-            target, current = self.solver.task_poses(name)
+    def _fill_status(self, stamp, result) -> SolverStatus:
+        """Update the reused status message in place (building it anew each step costs more
+        than the IK step); rebuilt when the stack or an enable flag changes."""
+        if self._status_template is None:
+            self._status_template = self._new_status()
+        status = self._status_template
+        status.header.stamp = stamp
+        status.strategy = self.solver.strategy_name
+        status.clamping_iterations = result.clamping_iterations
+        status.solve_time = result.solve_time
+        status.damping = result.damping.tolist()
+        status.clamped = result.clamped.tolist()
+        status.last_input_stamp = self.last_input_stamp
+        status.rejected_inputs = self.rejected_inputs
+        status.last_rejection = self.last_rejection
+        for level_msg, level in zip(status.levels, result.levels):
+            level_msg.residual_norm = level.residual_norm
+            level_msg.step_residual_norm = level.step_residual_norm
+        for task_msg in status.tasks:
+            task_msg.error_norm = result.task_errors[task_msg.name]
+            target, current = self.solver.task_poses(task_msg.name)
             if target is not None:
-                task_status.target = pose_msg_from_se3(target)
-                task_status.current = pose_msg_from_se3(current)
-            status.tasks.append(task_status)
+                fill_pose_msg(task_msg.target, target.translation, _xyzw(target))
+                fill_pose_msg(task_msg.current, current.translation, _xyzw(current))
         return status
+
+    def _new_status(self) -> SolverStatus:
+        layout = self.solver.levels()
+        status = SolverStatus(header=_header(Time(), "world"),
+                              joint_names=self.robot.limited_joint_names)
+        status.levels = [LevelStatus(priority=priority, tasks=names)
+                         for priority, names in layout]
+        status.tasks = [TaskStatus(name=name, priority=task.priority, enabled=task.enabled)
+                        for name, task in self.solver.tasks.items()]
+        return status
+
+
+def fill_pose_msg(pose, position, quaternion_xyzw) -> None:
+    """Write a position (m) and a quaternion (x, y, z, w) into a geometry_msgs/Pose."""
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in position)
+    (pose.orientation.x, pose.orientation.y, pose.orientation.z,
+     pose.orientation.w) = (float(v) for v in quaternion_xyzw)
+
+
+def _xyzw(transform):
+    return pin.Quaternion(transform.rotation).coeffs()
 
 
 def _header(stamp, frame_id=""):
@@ -254,9 +319,11 @@ def main(args=None):
         print(f"pik_node: cannot start: {error}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
+    node.start_loop()
     try:
         spin_until_signal(node)
     finally:
+        node.stop_loop()
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

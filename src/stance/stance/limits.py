@@ -40,6 +40,9 @@ def cubic_step(d):
     return d * d * (3.0 - 2.0 * d)
 
 
+NEGLIGIBLE_VARIATION = 1e-12  # rad: below this a joint variation is not worth a re-solve
+
+
 @numba.njit(cache=True)
 def _progressive_decision(q, dq, lower, upper, lower_threshold, upper_threshold,
                           thickness, free, progressive):
@@ -50,7 +53,7 @@ def _progressive_decision(q, dq, lower, upper, lower_threshold, upper_threshold,
     varied = np.zeros(count)
     h = np.zeros(count)
     for j in range(count):
-        if not free[j]:
+        if not free[j] or abs(dq[j]) <= NEGLIGIBLE_VARIATION:
             continue
         q_next = q[j] + dq[j]
         if q_next > upper[j]:
@@ -84,6 +87,11 @@ class RevoluteLimits:
         self.upper_threshold = self.upper - thickness
         self.thickness = thickness
 
+    def keep_inside(self, q, q_next):
+        """Project q_next into the limits without ever moving a joint further out than q:
+        removes the negligible overshoot of variations the decision ignored."""
+        return np.clip(q_next, np.minimum(self.lower, q), np.maximum(self.upper, q))
+
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         fix, varied, h = _progressive_decision(
             q, dq, self.lower, self.upper, self.lower_threshold, self.upper_threshold,
@@ -94,6 +102,7 @@ class RevoluteLimits:
 
 class NoLimits:
     name = "none"
+    enforces_limits = False
 
     def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
         empty = np.zeros(0)
@@ -104,6 +113,7 @@ class Clamping:
     """Baerlocher-Boulic clamping: fix on the limit any joint that q + dq takes outside."""
 
     name = "clamping"
+    enforces_limits = True
 
     def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
         return limits.decide(q, dq, free, progressive=False)
@@ -113,6 +123,7 @@ class ProgressiveClamping:
     """Raunhardt-Boulic progressive clamping (eq. 1-5), then the clamping check."""
 
     name = "progressive"
+    enforces_limits = True
 
     def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
         return limits.decide(q, dq, free, progressive=True)

@@ -154,10 +154,17 @@ class PIKSolver:
         if scale < 1.0:
             dq = dq * scale
         q_next = pin.integrate(robot.model, q, dq)
+        if self.strategy.enforces_limits:
+            q_next[robot.limited_q_index] = self.limits.keep_inside(
+                q_limited, q_next[robot.limited_q_index])
         levels, task_errors = self._reports(q, error, solution.step_residuals)
         return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors, damping=h,
                           clamped=fixed, clamping_iterations=iterations,
                           solve_time=time.perf_counter() - start, velocity_scale=scale)
+
+    def levels(self) -> list:
+        """(priority, task names) of each level with enabled tasks, highest first."""
+        return list(zip(self._layout.priorities, self._layout.level_tasks))
 
     def task_poses(self, name: str):
         """(target, current) SE3 of a frame or CoM task at the last computed kinematics

@@ -11,6 +11,9 @@ import sys
 SUBCOMMANDS = {
     "record": ("stance_tools.record", "record topics to an MCAP bag (rosbag2 layout)"),
     "plot": ("stance_tools.plot", "write PNG plots from a recorded bag"),
+    "teleop": ("stance_tools.teleop",
+               "move a task's target from the keyboard or along a scripted path"),
+    "demo": ("stance_tools.demo", "PIK demo on Talos: node, recorder, scripted path, plots"),
 }
 
 
