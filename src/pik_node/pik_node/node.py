@@ -312,6 +312,9 @@ def spin_until_signal(node: Node) -> None:
 
 
 def main(args=None):
+    # Two Python threads share the GIL: with the default 5 ms switch interval either one can
+    # hold the other for longer than a control period.
+    sys.setswitchinterval(0.0005)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = PikNode()

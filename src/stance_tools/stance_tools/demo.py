@@ -7,6 +7,7 @@ zones and onto its limits, each in its own process; then the plots of the bag.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -54,12 +55,16 @@ def run(args) -> int:
             return _fail(group, "the recorder reported lost or unwritten messages")
     finally:
         group.stop_all()
-    from .plot import write_plots
-    paths = write_plots(bag, output / "plots")
-    print("\nbag:   " + str(bag))
-    for path in paths:
-        print("plot:  " + str(path))
-    return 0
+    print(f"\nbag: {bag}\nplots:")
+    return _plot(bag, output / "plots")
+
+
+def _plot(bag: Path, output: Path) -> int:
+    from . import plot
+
+    parser = argparse.ArgumentParser(prog="stance plot")
+    plot.add_arguments(parser)
+    return plot.run(parser.parse_args([str(bag), "-o", str(output)]))
 
 
 def _wait_for_recorder(pik, recorder, timeout: float = 60.0) -> bool:

@@ -1,0 +1,264 @@
+"""`stance plot BAG`: PNG figures of a recorded run, read without ROS (see stance_tools.bag).
+
+- joints.png: each joint position of /joint_states over time against its URDF limits (taken from
+  the latched /robot_description); raw radians or meters, nothing normalized.
+- damping.png: progressive clamping h per joint from /pik/status (stance_msgs/SolverStatus).
+- errors.png: per-level residuals and per-task errors from /pik/status, log scale.
+
+Time is in seconds from the first message of the bag (log time). A figure whose topic is missing
+is reported as an error (exit code 1); the others are still written.
+"""
+
+import math
+import re
+import sys
+import xml.etree.ElementTree as ET
+from collections import defaultdict
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after selecting the non-interactive backend)
+import numpy as np  # noqa: E402
+
+from stance_tools.bag import read_messages, start_time_ns  # noqa: E402
+
+JOINT_STATES = "/joint_states"
+ROBOT_DESCRIPTION = "/robot_description"
+SOLVER_STATUS = "/pik/status"
+LOG_FLOOR = 1e-16  # errors are drawn no lower than this on log axes (exact zeros)
+
+
+def joint_limits(urdf):
+    """{joint name: (lower, upper)} of the revolute and prismatic joints of a URDF string."""
+    limits = {}
+    for joint in ET.fromstring(urdf).findall("joint"):  # direct children: not transmissions
+        limit = joint.find("limit")
+        if joint.get("type") in ("revolute", "prismatic") and limit is not None:
+            limits[joint.get("name")] = (float(limit.get("lower", 0.0)),
+                                         float(limit.get("upper", 0.0)))
+    return limits
+
+
+class Series:
+    """Named scalar time series sampled at irregular times (times in s)."""
+
+    def __init__(self):
+        self._samples = defaultdict(list)
+
+    def add(self, name, time, value):
+        self._samples[name].append((time, value))
+
+    def names(self):
+        return list(self._samples)
+
+    def arrays(self, name):
+        """(times in s, values) as numpy arrays."""
+        times, values = zip(*self._samples[name])
+        return np.asarray(times), np.asarray(values, dtype=float)
+
+    def __bool__(self):
+        return bool(self._samples)
+
+
+class Run:
+    """What the figures need from a bag, read in one pass."""
+
+    def __init__(self, bag):
+        self.positions = Series()  # joint name -> position (rad or m)
+        self.damping = Series()  # joint name -> h in [0, 1]
+        self.clamped = Series()  # joint name -> 1.0 where clamped
+        self.residuals = Series()  # level label -> residual norm
+        self.task_errors = Series()  # task label -> error norm
+        self.urdf = None
+        self.has_joint_states = self.has_status = False
+        origin = start_time_ns(bag) or 0
+        for topic, log_time, msg in read_messages(
+                bag, [JOINT_STATES, ROBOT_DESCRIPTION, SOLVER_STATUS]):
+            t = (log_time - origin) * 1e-9
+            if topic == JOINT_STATES:
+                self.has_joint_states = True
+                for name, position in zip(msg.name, msg.position):
+                    self.positions.add(name, t, position)
+            elif topic == ROBOT_DESCRIPTION:
+                self.urdf = msg.data
+            else:
+                self._add_status(t, msg)
+
+    def _add_status(self, t, status):
+        self.has_status = True
+        for name, h, clamped in zip(status.joint_names, status.damping, status.clamped):
+            self.damping.add(name, t, h)
+            self.clamped.add(name, t, float(clamped))
+        for level in status.levels:
+            self.residuals.add(f"P{level.priority}: {', '.join(level.tasks)}", t,
+                               level.residual_norm)
+        for task in status.tasks:
+            self.task_errors.add(f"{task.name} (P{task.priority})", t, task.error_norm)
+
+
+def grid(count):
+    """(rows, columns) of a near-square grid with at least count cells."""
+    columns = max(1, math.ceil(math.sqrt(count)))
+    return math.ceil(count / columns), columns
+
+
+def plot_joints(run, path, pattern=None, moving_only=False):
+    """Joint positions against URDF limits, one small subplot per joint."""
+    limits = joint_limits(run.urdf) if run.urdf else {}
+    names = [n for n in run.positions.names() if not pattern or re.search(pattern, n)]
+    if moving_only:
+        names = [n for n in names if np.ptp(run.positions.arrays(n)[1]) > 1e-9]
+    if not names:
+        raise LookupError("no joint to plot (check --joints / --moving)")
+    rows, columns = grid(len(names))
+    height = 2.0 * rows + 0.6
+    # A fixed layout: constrained layout costs seconds on a 32-joint grid.
+    fig, axes = plt.subplots(rows, columns, figsize=(2.8 * columns, height), sharex=True,
+                             squeeze=False)
+    fig.subplots_adjust(hspace=0.45, wspace=0.3, top=1.0 - 0.75 / height)
+    for index, (ax, name) in enumerate(zip(axes.flat, names)):
+        times, values = run.positions.arrays(name)
+        ax.plot(times, values, lw=1.0, color="tab:blue")
+        if name in limits:
+            lower, upper = limits[name]
+            ax.axhspan(lower, upper, color="tab:green", alpha=0.12, lw=0)
+            for bound in (lower, upper):
+                ax.axhline(bound, color="tab:red", ls="--", lw=0.9)
+            outside = (values < lower) | (values > upper)
+            if outside.any():
+                ax.plot(times[outside], values[outside], ".", ms=2, color="tab:red")
+        ax.set_title(name if name in limits else f"{name} (no limit)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+        if index + columns >= len(names):  # lowest subplot of its column
+            ax.tick_params(labelbottom=True)
+            ax.set_xlabel("time (s)", fontsize=8)
+    for ax in axes.flat[len(names):]:
+        ax.set_visible(False)
+    note = "" if limits else " - no /robot_description: limits not shown"
+    fig.suptitle(f"Joint positions (rad, prismatic m); red dashed: URDF limits, red dots: "
+                 f"outside{note}", fontsize=10)
+    save(fig, path)
+
+
+def plot_damping(run, path):
+    """h(t) of the joints ever damped, and a time x joint heat map of h for all joints."""
+    names = run.damping.names()
+    active = [n for n in names if run.damping.arrays(n)[1].max() > 0.0]
+    fig, (top, bottom) = plt.subplots(
+        2, 1, figsize=(11, 4 + 0.18 * len(names)), height_ratios=[1.0, 0.4 + 0.04 * len(names)],
+        layout="constrained")
+    for name in active:
+        times, h = run.damping.arrays(name)
+        (line,) = top.plot(times, h, lw=1.0, label=name)
+        clamped = run.clamped.arrays(name)[1] > 0
+        if clamped.any():
+            top.plot(times[clamped], h[clamped], "|", ms=4, color=line.get_color())
+    if active:
+        top.legend(fontsize=7, ncol=max(1, math.ceil(len(active) / 12)), loc="upper left",
+                   bbox_to_anchor=(1.01, 1.0))
+        top.set_title("Progressive clamping h of the joints ever damped (| marks: clamped)",
+                      fontsize=10)
+    else:
+        top.text(0.5, 0.5, "no joint was ever damped: h = 0 throughout", ha="center",
+                 va="center", transform=top.transAxes, fontsize=12)
+        top.set_title("Progressive clamping h", fontsize=10)
+    top.set_ylim(-0.05, 1.05)
+    top.set_ylabel("h")
+    top.grid(alpha=0.3)
+
+    bottom.set_xlabel("time (s)")
+    bottom.set_title("h per joint", fontsize=10)
+    if names:
+        times, h = heat_map(run.damping, names)
+        image = bottom.pcolormesh(times, np.arange(len(names) + 1), h, cmap="magma_r",
+                                  vmin=0.0, vmax=1.0, shading="flat")
+        bottom.set_yticks(np.arange(len(names)) + 0.5, names, fontsize=6)
+        bottom.invert_yaxis()
+        fig.colorbar(image, ax=bottom, label="h", pad=0.01)
+        top.set_xlim(bottom.get_xlim())
+    else:
+        bottom.text(0.5, 0.5, "the solver status lists no limited joint", ha="center",
+                    va="center", transform=bottom.transAxes)
+    save(fig, path)
+
+
+def heat_map(series, names):
+    """(cell edges in s, h[joint, cell]) on the union of the sample times; NaN where a joint
+    has no sample."""
+    times = np.unique(np.concatenate([series.arrays(n)[0] for n in names]))
+    values = np.full((len(names), len(times)), np.nan)
+    for row, name in enumerate(names):
+        t, v = series.arrays(name)
+        values[row, np.searchsorted(times, t)] = v
+    step = np.diff(times).min() if len(times) > 1 else 1.0
+    return np.append(times, times[-1] + step), values
+
+
+def plot_errors(run, path):
+    """Per-level residual norms and per-task error norms over time, log scale."""
+    fig, axes = plt.subplots(2, 1, figsize=(11, 7.5), sharex=True, layout="constrained")
+    for ax, series, title in ((axes[0], run.residuals, "Residual norm per priority level"),
+                              (axes[1], run.task_errors, "Error norm per task")):
+        for label in series.names():
+            times, values = series.arrays(label)
+            ax.plot(times, np.maximum(values, LOG_FLOOR), lw=1.0, label=label)
+        ax.set_yscale("log")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+        if series:
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    axes[0].set_ylabel("residual (task units)")
+    axes[1].set_ylabel("error (m or rad)")
+    axes[1].set_xlabel("time (s)")
+    save(fig, path)
+
+
+def save(fig, path):
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def add_arguments(parser):
+    parser.add_argument("bag", help="bag directory or .mcap file")
+    parser.add_argument("-o", "--output", metavar="OUTDIR",
+                        help="directory for the PNGs (default: the bag directory)")
+    parser.add_argument("--joints", metavar="REGEX", help="only joints whose name matches")
+    parser.add_argument("--moving", action="store_true", help="only joints that move")
+
+
+def run(args):
+    bag = Path(args.bag)
+    if not bag.exists():
+        print(f"stance plot: {bag} does not exist", file=sys.stderr)
+        return 2
+    output = Path(args.output) if args.output else (bag if bag.is_dir() else bag.parent)
+    output.mkdir(parents=True, exist_ok=True)
+    data = Run(bag)
+    if data.has_joint_states and data.urdf is None:
+        print(f"warning: no {ROBOT_DESCRIPTION} in {bag}: joint limits not shown",
+              file=sys.stderr)
+    figures = [
+        ("joints.png", data.has_joint_states, JOINT_STATES,
+         lambda p: plot_joints(data, p, args.joints, args.moving)),
+        ("damping.png", data.has_status, SOLVER_STATUS, lambda p: plot_damping(data, p)),
+        ("errors.png", data.has_status, SOLVER_STATUS, lambda p: plot_errors(data, p)),
+    ]
+    failed = False
+    for name, available, topic, draw in figures:
+        path = output / name
+        if not available:
+            print(f"stance plot: cannot write {name}: no {topic} messages in {bag}",
+                  file=sys.stderr)
+            failed = True
+            continue
+        try:
+            draw(path)
+        except LookupError as error:
+            print(f"stance plot: cannot write {name}: {error}", file=sys.stderr)
+            failed = True
+            continue
+        print(path)
+    return 1 if failed else 0
