@@ -85,12 +85,13 @@ class PIKSolver:
     def set_strategy(self, name: str) -> None:
         self.strategy = make_strategy(name)
 
-    def compute_kinematics(self, q: np.ndarray) -> None:
-        """Fill robot.data for q: joint Jacobians, frame placements, CoM and its Jacobian."""
+    def compute_kinematics(self, q: np.ndarray, com: bool | None = None) -> None:
+        """Fill robot.data for q: joint Jacobians, frame placements, CoM and its Jacobian
+        (com: default when the stack has a CoM task)."""
         model, data = self.robot.model, self.robot.data
         pin.computeJointJacobians(model, data, q)
         pin.updateFramePlacements(model, data)
-        if self._needs_com:
+        if self._needs_com if com is None else com:
             pin.jacobianCenterOfMass(model, data, False)
 
     def set_stack(self, specs, q: np.ndarray) -> None:
@@ -98,9 +99,10 @@ class PIKSolver:
         their targets; new tasks hold their value at q. On error nothing changes."""
         specs = validate_stack(specs, self.robot.model.existFrame)
         tasks = {spec.name: make_task(spec, self.robot) for spec in specs}
+        needs_com = any(isinstance(task, ComTask) for task in tasks.values())
+        self.compute_kinematics(q, com=needs_com)  # raises on a bad q before any change
         previous, self.tasks = self.tasks, tasks
-        self._needs_com = any(isinstance(task, ComTask) for task in tasks.values())
-        self.compute_kinematics(q)
+        self._needs_com = needs_com
         for name, task in tasks.items():
             old = previous.get(name)
             if old is not None and (old.spec.kind, old.spec.frame) == (task.spec.kind,

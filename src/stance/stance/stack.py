@@ -61,6 +61,8 @@ def validate_spec(spec: TaskSpec, frame_exists=None) -> None:
         raise StackError(f"task name {spec.name!r} must match {NAME_PATTERN.pattern}")
     if spec.kind not in KINDS:
         raise StackError(f"{where}: unknown kind {spec.kind!r} (expected one of {', '.join(KINDS)})")
+    if not isinstance(spec.frame, str):
+        raise StackError(f"{where}: frame must be a string (got {spec.frame!r})")
     if spec.kind in FRAME_KINDS:
         if not spec.frame:
             raise StackError(f"{where}: kind {spec.kind} needs a frame")
@@ -82,6 +84,8 @@ def validate_spec(spec: TaskSpec, frame_exists=None) -> None:
                              f"(allowed: {', '.join(allowed) or 'none'})")
     if len(set(spec.axes)) != len(spec.axes):
         raise StackError(f"{where}: repeated axis in {list(spec.axes)}")
+    if not isinstance(spec.enabled, bool):
+        raise StackError(f"{where}: enabled must be true or false (got {spec.enabled!r})")
 
 
 def validate_stack(specs, frame_exists=None) -> list:
@@ -111,7 +115,7 @@ def spec_from_dict(entry: dict) -> TaskSpec:
     if "name" not in entry or "kind" not in entry:
         raise StackError(f"task {entry!r} needs at least a name and a kind")
     axes = entry.get("axes", ())
-    if isinstance(axes, str):
+    if not isinstance(axes, (list, tuple)):
         axes = (axes,)
     spec = TaskSpec(name=entry["name"], kind=entry["kind"])
     return replace(spec, frame=entry.get("frame", ""), priority=entry.get("priority", 0),

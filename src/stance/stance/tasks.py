@@ -95,7 +95,8 @@ class FrameTask(Task):
 
     @property
     def target(self) -> pin.SE3:
-        return self._target
+        """A copy: the tracked target changes only through the setter (which caches it)."""
+        return self._target.copy()
 
     @target.setter
     def target(self, pose: pin.SE3) -> None:

@@ -14,6 +14,8 @@ SUBCOMMANDS = {
     "teleop": ("stance_tools.teleop",
                "move a task's target from the keyboard or along a scripted path"),
     "demo": ("stance_tools.demo", "PIK demo on Talos: node, recorder, scripted path, plots"),
+    "bench": ("stance_tools.bench",
+              "benchmarks: pik (library step vs Pink), node (loop rate, latency)"),
 }
 
 

@@ -1,0 +1,322 @@
+"""`stance bench`: benchmarks, one sub-benchmark per name (all of them when none is named).
+
+- pik: one library IK step on Talos, PIKSolver (strategies none / clamping / progressive)
+  against Pink's solve_ik on every available QP backend, same robot, stack and targets.
+- node: pik_node's loop rate and latency over DDS (stance_tools.bench_node).
+
+A sub-benchmark is registered in BENCHMARKS by its module and the names of two functions,
+``add(parser)`` and ``run(args) -> int``; modules must import heavy dependencies (rclpy) in
+their run function only.
+"""
+
+from __future__ import annotations
+
+import os
+
+# One BLAS thread before numpy loads (small SVDs slow down with more): as in the nodes.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import importlib  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+# name -> (module, add-arguments function, run function, help)
+BENCHMARKS = {
+    "pik": (__name__, "add_pik_arguments", "run_pik",
+            "library step: PIKSolver (none/clamping/progressive) vs Pink solve_ik"),
+    "node": ("stance_tools.bench_node", "add_node_arguments", "run_node",
+             "pik_node over DDS: loop rate at 500 Hz, target-to-joint_states latency"),
+}
+
+
+def add_arguments(parser) -> None:
+    benchmarks = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK",
+                                       help="default: every benchmark with its defaults")
+    parsers = {}
+    for name, (module_name, add_name, run_name, help_text) in BENCHMARKS.items():
+        module = importlib.import_module(module_name)
+        sub = benchmarks.add_parser(name, help=help_text)
+        getattr(module, add_name)(sub)
+        sub.set_defaults(run_benchmark=getattr(module, run_name))
+        parsers[name] = sub
+    parser.set_defaults(benchmark_parsers=parsers)
+
+
+def run(args) -> int:
+    if args.benchmark is not None:
+        return args.run_benchmark(args)
+    status = 0
+    for sub in args.benchmark_parsers.values():
+        defaults = sub.parse_args([])
+        status = max(status, defaults.run_benchmark(defaults))
+    return status
+
+
+# ---------------------------------------------------------------------------------------
+# pik: PIKSolver.step vs Pink solve_ik + integrate + configuration update
+# ---------------------------------------------------------------------------------------
+
+STRATEGIES = ("progressive", "clamping", "none")
+PINK_BACKENDS = ("quadprog", "daqp", "proxqp")
+GRIPPER_JOINTS = ("gripper_left_joint", "gripper_right_joint")
+GRIPPER_MARGIN = 0.01      # rad inside the grippers' upper limit (0) at the start
+COST_PER_LEVEL = 10.0      # Pink has no priorities: cost 10^-priority * sqrt(weight)
+
+
+def add_pik_arguments(parser) -> None:
+    parser.add_argument("--steps", type=int, default=2000, help="timed steps per contender")
+    parser.add_argument("--warmup", type=int, default=200,
+                        help="untimed steps first (numba and QP set-up excluded)")
+    parser.add_argument("--offset", type=float, nargs=3, default=(0.25, -0.2, 0.2),
+                        metavar=("X", "Y", "Z"), help="right-hand target offset (m, world)")
+    parser.add_argument("--dt", type=float, default=0.002,
+                        help="step period (s): velocity limits for both solvers")
+    parser.add_argument("--backends", nargs="+", default=PINK_BACKENDS,
+                        help="Pink QP backends (those not installed are skipped)")
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+
+
+@dataclass
+class Record:
+    """What one contender did over the timed run."""
+
+    times_ns: list = field(default_factory=list)
+    iterations: list = field(default_factory=list)
+    max_limit_excess: float = 0.0
+    failed_at: int | None = None
+    failure: str = ""
+    q: np.ndarray | None = None
+
+
+class StanceContender:
+    """PIKSolver.step with one limit strategy."""
+
+    def __init__(self, robot, strategy, specs, targets, start, dt):
+        from stance.pik import PIKSolver
+
+        self.name = f"stance {strategy}"
+        self.solver = PIKSolver(robot, strategy=strategy, dt=dt)
+        self.solver.set_stack(specs, start)
+        for name, target in targets.items():
+            self.solver.task(name).target = target
+
+    def reset(self, q) -> None:
+        """Stateless between steps: nothing to do."""
+
+    def step(self, q):
+        result = self.solver.step(q)
+        return result.q, result.clamping_iterations
+
+
+class PinkContender:
+    """pink.solve_ik on one QP backend, then pin.integrate and Configuration.update."""
+
+    def __init__(self, robot, backend, specs, targets, start, dt):
+        import pink
+        import pinocchio as pin
+
+        self.name = f"pink {backend}"
+        self.backend, self.dt = backend, dt
+        self.solve_ik, self.integrate = pink.solve_ik, pin.integrate
+        self.model = robot.model.copy()  # Pink attaches its limits to the model
+        self.configuration = pink.Configuration(self.model, self.model.createData(), start)
+        self.tasks = [pink_task(spec, targets[spec.name]) for spec in specs]
+
+    def reset(self, q) -> None:
+        self.configuration.update(q)
+
+    def step(self, q):
+        velocity = self.solve_ik(self.configuration, self.tasks, self.dt, solver=self.backend)
+        q_next = self.integrate(self.model, self.configuration.q, velocity * self.dt)
+        self.configuration.update(q_next)
+        return q_next, 0
+
+
+def pink_task(spec, target):
+    """The Pink task closest to a stance TaskSpec, with the spec's gain."""
+    from pink.tasks import ComTask, FrameTask, PostureTask
+
+    cost = COST_PER_LEVEL ** -spec.priority * np.sqrt(spec.weight)
+    if spec.kind == "pose":
+        task = FrameTask(spec.frame, position_cost=cost, orientation_cost=cost, gain=spec.gain)
+    elif spec.kind == "com":
+        task = ComTask([cost if axis in spec.selected_axes() else 0.0 for axis in "xyz"],
+                       gain=spec.gain)
+    elif spec.kind == "posture":
+        task = PostureTask(cost, gain=spec.gain)
+    else:
+        raise ValueError(f"no Pink equivalent for task kind {spec.kind}")
+    task.set_target(target)
+    return task
+
+
+def bench_start(robot) -> np.ndarray:
+    """half_sitting with both grippers GRIPPER_MARGIN inside their upper limit."""
+    q = robot.initial_configuration()
+    for joint in GRIPPER_JOINTS:
+        index = robot.model.joints[robot.joint_id(joint)].idx_q
+        q[index] = robot.model.upperPositionLimit[index] - GRIPPER_MARGIN
+    return q
+
+
+def bench_targets(robot, specs, start, offset) -> dict:
+    """Targets held at the start, the right hand moved by `offset` (m, world)."""
+    from stance.pik import PIKSolver
+
+    solver = PIKSolver(robot)
+    solver.set_stack(specs, start)
+    targets = {name: task.target for name, task in solver.tasks.items()}
+    targets["right_hand"].translation += np.asarray(offset, dtype=float)
+    return targets
+
+
+def limit_excess(robot, q) -> float:
+    values = q[robot.limited_q_index]
+    return float(np.maximum(0.0, np.maximum(values - robot.upper, robot.lower - values)).max())
+
+
+def race(contenders, robot, start, steps) -> dict:
+    """Every contender takes step k before any takes step k+1, in an order rotated at each
+    step, so machine noise spreads evenly. Pink errors mark a contender failed."""
+    from pink.exceptions import PinkError
+
+    records = {contender.name: Record() for contender in contenders}
+    configurations = {contender.name: start for contender in contenders}
+    for contender in contenders:
+        contender.reset(start)
+    for step in range(steps):
+        shift = step % len(contenders)
+        for contender in contenders[shift:] + contenders[:shift]:
+            record = records[contender.name]
+            if record.failed_at is not None:
+                continue
+            begin = time.perf_counter_ns()
+            try:
+                q, iterations = contender.step(configurations[contender.name])
+            except PinkError as error:
+                record.failed_at, record.failure = step, f"{type(error).__name__}: {error}"
+                continue
+            record.times_ns.append(time.perf_counter_ns() - begin)
+            record.iterations.append(iterations)
+            record.max_limit_excess = max(record.max_limit_excess, limit_excess(robot, q))
+            configurations[contender.name] = record.q = q
+    return records
+
+
+def figures(records, evaluator) -> dict:
+    """Per contender: timing (us), clamping iterations, final task errors (stance's
+    definitions, m or rad), worst limit excess (rad) and failure if any."""
+    result = {}
+    for name, record in records.items():
+        times = np.array(record.times_ns) / 1e3
+        result[name] = {
+            "median_us": float(np.median(times)) if len(times) else None,
+            "p99_us": float(np.percentile(times, 99)) if len(times) else None,
+            "mean_clamping_iterations": (float(np.mean(record.iterations))
+                                         if name.startswith("stance") and record.iterations
+                                         else None),
+            "final_task_errors": (evaluator.step(record.q).task_errors
+                                  if record.q is not None else None),
+            "max_limit_excess": record.max_limit_excess,
+            "timed_steps": len(times),
+            "failed_at_step": record.failed_at,
+            "failure": record.failure or None,
+        }
+    reference = result["stance progressive"]["median_us"]
+    for name, entry in result.items():
+        pink_median = entry["median_us"] if name.startswith("pink") else None
+        entry["stance_over_pink_median"] = reference / pink_median if pink_median else None
+    return result
+
+
+def start_note(robot, specs, targets, backends, dt) -> str:
+    """Why the start is not half_sitting itself, with what Pink does from half_sitting."""
+    from pink.exceptions import PinkError
+
+    outcomes = []
+    for backend in backends:
+        contender = PinkContender(robot, backend, specs, targets,
+                                  robot.initial_configuration(), dt)
+        try:
+            contender.step(robot.initial_configuration())
+            outcomes.append(f"{backend} ok")
+        except PinkError as error:
+            outcomes.append(f"{backend} {type(error).__name__}")
+    return (f"start: half_sitting with {' and '.join(GRIPPER_JOINTS)} moved {GRIPPER_MARGIN} "
+            f"rad inside their upper limit 0. Pink's ConfigurationLimit assumes a start "
+            f"strictly inside the limits and can raise NoSolutionFound from a joint exactly "
+            f"on one (Pink #206, #163); one Pink step from half_sitting itself here: "
+            f"{', '.join(outcomes)}.")
+
+
+def print_table(result, errors_order) -> None:
+    task_columns = "".join(f"{name:>12}" for name in errors_order)
+    print(f"{'contender':<20}{'median us':>10}{'p99 us':>10}{'iters':>7}{'excess rad':>12}"
+          f"{task_columns}{'stance/pink':>13}")
+    for name, entry in result.items():
+        if entry["median_us"] is None:
+            print(f"{name:<20} failed at timed step {entry['failed_at_step']}: "
+                  f"{entry['failure']}")
+            continue
+        iterations = entry["mean_clamping_iterations"]
+        errors = entry["final_task_errors"]
+        ratio = entry["stance_over_pink_median"]
+        print(f"{name:<20}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
+              f"{'-' if iterations is None else f'{iterations:.2f}':>7}"
+              f"{entry['max_limit_excess']:>12.2e}"
+              + "".join(f"{errors[task]:>12.2e}" for task in errors_order)
+              + f"{'-' if ratio is None else f'{ratio:.2f}':>13}")
+        if entry["failed_at_step"] is not None:
+            print(f"{'':<20} failed at timed step {entry['failed_at_step']}: "
+                  f"{entry['failure']}")
+
+
+def run_pik(args) -> int:
+    import qpsolvers
+    from threadpoolctl import threadpool_limits
+
+    from stance.pik import PIKSolver, default_stack_specs
+    from stance.robot import Robot
+
+    robot = Robot.from_example_robot_data("talos")
+    specs = default_stack_specs()
+    start = bench_start(robot)
+    targets = bench_targets(robot, specs, start, args.offset)
+    backends = [name for name in args.backends if name in qpsolvers.available_solvers]
+    skipped = sorted(set(args.backends) - set(backends))
+    evaluator = PIKSolver(robot)
+    evaluator.set_stack(specs, start)
+    for name, target in targets.items():
+        evaluator.task(name).target = target
+
+    with threadpool_limits(limits=1):
+        contenders = [StanceContender(robot, strategy, specs, targets, start, args.dt)
+                      for strategy in STRATEGIES]
+        contenders += [PinkContender(robot, backend, specs, targets, start, args.dt)
+                       for backend in backends]
+        note = start_note(robot, specs, targets, backends, args.dt)
+        race(contenders, robot, start, args.warmup)
+        records = race(contenders, robot, start, args.steps)  # same trajectory from start
+    result = figures(records, evaluator)
+
+    print(f"stance bench pik: Talos (nv {robot.model.nv}), demo stack "
+          f"({', '.join(spec.name for spec in specs)}), right-hand target "
+          f"{np.round(args.offset, 3).tolist()} m from its start, dt {args.dt} s, "
+          f"{args.steps} timed steps after {args.warmup} warm-up, one BLAS thread, "
+          f"round-robin order")
+    print("Pink costs 10^-priority per task, gains as in the stack, default limits"
+          + (f"; backends not installed: {', '.join(skipped)}" if skipped else ""))
+    print(note)
+    print_table(result, [spec.name for spec in specs])
+    print("iters: mean hierarchy solutions per step (clamping loop); excess: worst limit "
+          "violation over the run; task errors at the final configuration (m, rad)")
+    if args.json:
+        with open(args.json, "w") as output:
+            json.dump({"robot": "talos", "steps": args.steps, "warmup": args.warmup,
+                       "dt": args.dt, "right_hand_offset": list(args.offset),
+                       "note": note, "contenders": result}, output, indent=2)
+    return 0

@@ -1,0 +1,144 @@
+"""Strict priorities: a level is never disturbed by the levels below it.
+
+DampedHierarchy is checked on random (possibly rank-deficient) levels with fixed joints,
+and PIKSolver on Talos, where a conflicting lower level must leave the higher ones alone.
+"""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from stance.hierarchy import DampedHierarchy, Level
+from stance.pik import PIKSolver, default_stack_specs
+from stance.robot import Robot
+from stance.stack import TaskSpec
+
+PRIORITY_TOLERANCE = 1e-8
+DAMPING = 1e-3
+PROPERTY = settings(max_examples=100, deadline=None, derandomize=True, database=None)
+
+
+@st.composite
+def hierarchy_problems(draw):
+    """(levels, nv, fixed_index, fixed_dq): random levels of random rank, some fixed joints."""
+    nv = draw(st.integers(2, 12))
+    shapes = draw(st.lists(
+        st.integers(1, 8).flatmap(lambda rows: st.tuples(st.just(rows),
+                                                         st.integers(0, min(rows, nv)))),
+        min_size=1, max_size=4))
+    fixed = draw(st.lists(st.booleans(), min_size=nv, max_size=nv))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    levels = [Level(rng.normal(size=(rows, rank)) @ rng.normal(size=(rank, nv)),
+                    rng.normal(size=rows))
+              for rows, rank in shapes]
+    fixed_index = np.flatnonzero(fixed)
+    return levels, nv, fixed_index, rng.normal(size=len(fixed_index))
+
+
+def residual(level: Level, dq: np.ndarray) -> float:
+    return float(np.linalg.norm(level.jacobian @ dq - level.target))
+
+
+@PROPERTY
+@given(hierarchy_problems())
+def test_lower_levels_never_change_a_higher_level_residual(problem):
+    """Level i's residual at the full solution equals its residual solving levels 0..i."""
+    levels, nv, fixed_index, fixed_dq = problem
+    hierarchy = DampedHierarchy(damping=DAMPING)
+    full = hierarchy.solve(levels, nv, fixed_index, fixed_dq)
+    for index, level in enumerate(levels):
+        prefix = hierarchy.solve(levels[:index + 1], nv, fixed_index, fixed_dq)
+        assert abs(residual(level, full.dq) - residual(level, prefix.dq)) < PRIORITY_TOLERANCE
+        assert abs(full.step_residuals[index] - prefix.step_residuals[index]) \
+            < PRIORITY_TOLERANCE
+
+
+@PROPERTY
+@given(hierarchy_problems())
+def test_fixed_joints_are_exactly_respected(problem):
+    levels, nv, fixed_index, fixed_dq = problem
+    solution = DampedHierarchy(damping=DAMPING).solve(levels, nv, fixed_index, fixed_dq)
+    assert np.array_equal(solution.dq[fixed_index], fixed_dq)
+
+
+@pytest.mark.parametrize("rows, nv", [(3, 8), (8, 8), (12, 5)], ids=["wide", "square", "tall"])
+@pytest.mark.parametrize("followed_by_empty_level", [False, True],
+                         ids=["last_level", "intermediate_level"])
+def test_single_level_is_the_damped_pseudo_inverse(rows, nv, followed_by_empty_level):
+    """One full-rank level, no fixed joint: dq = V diag(s / (s^2 + lambda^2)) U^T target.
+
+    An empty level after it makes it an intermediate level (SVD path, not the last-level
+    normal equations)."""
+    rng = np.random.default_rng(rows * 100 + nv)
+    jacobian, target = rng.normal(size=(rows, nv)), rng.normal(size=rows)
+    levels = [Level(jacobian, target)]
+    if followed_by_empty_level:
+        levels.append(Level(np.zeros((0, nv)), np.zeros(0)))
+    u, sigma, vt = np.linalg.svd(jacobian, full_matrices=False)
+    expected = vt.T @ (sigma / (sigma**2 + DAMPING**2) * (u.T @ target))
+    solution = DampedHierarchy(damping=DAMPING).solve(levels, nv)
+    np.testing.assert_allclose(solution.dq, expected, rtol=1e-10, atol=1e-12)
+
+
+# Talos: feet > CoM > right hand, all feasible; then a level below them that conflicts
+# with one of them (same frame, other target) or with all (far posture).
+
+@pytest.fixture(scope="module")
+def talos():
+    return Robot.from_example_robot_data("talos")
+
+
+def shift_pose(task, offset) -> None:
+    target = task.target
+    target.translation += offset
+    task.set_target(target)
+
+
+def crouch_posture(task, robot) -> None:
+    """Every limited joint targets its lower limit."""
+    target = task.target.copy()
+    target[robot.limited_q_index] = robot.lower
+    task.target = target
+
+
+CONFLICTING_LEVELS = {
+    "right_hand_elsewhere": (
+        TaskSpec("right_hand_elsewhere", "position", frame="gripper_right_base_link",
+                 priority=3, gain=1.0),
+        lambda task, robot: shift_pose(task, [0.0, 0.5, 0.0])),
+    "left_foot_lifted": (
+        TaskSpec("left_foot_lifted", "position", frame="left_sole_link", priority=3, gain=1.0),
+        lambda task, robot: shift_pose(task, [0.0, 0.0, 0.1])),
+    "far_posture": (
+        TaskSpec("posture", "posture", priority=3, gain=1.0),
+        crouch_posture),
+}
+
+
+def feasible_specs() -> list:
+    return [spec for spec in default_stack_specs() if spec.kind != "posture"]
+
+
+def step_residuals(solver, q) -> dict:
+    return {level.priority: level.step_residual_norm for level in solver.step(q).levels}
+
+
+@pytest.mark.parametrize("conflict", CONFLICTING_LEVELS, ids=str)
+def test_conflicting_lower_level_leaves_higher_levels_unchanged_on_talos(talos, conflict):
+    q = talos.initial_configuration()
+    solver = PIKSolver(talos, strategy="none", damping=DAMPING)
+    solver.set_stack(feasible_specs(), q)
+    shift_pose(solver.task("right_hand"), [0.1, -0.1, 0.1])
+    alone = step_residuals(solver, q)
+
+    spec, set_conflicting_target = CONFLICTING_LEVELS[conflict]
+    solver.set_stack([*feasible_specs(), spec], q)  # higher tasks keep their targets
+    set_conflicting_target(solver.task(spec.name), talos)
+    together = step_residuals(solver, q)
+
+    assert together[spec.priority] > 1e-3, "the lower level should not be achievable"
+    for priority, value in alone.items():
+        assert value < 1e-4, f"level {priority} should be feasible"
+        assert abs(together[priority] - value) < PRIORITY_TOLERANCE
+
