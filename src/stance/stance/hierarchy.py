@@ -6,8 +6,14 @@ recursive Siciliano-Slotine formulation). Level i is solved inside the nullspace
 as orthonormal bases Z (nv x k) rather than projectors: each level then works on a k-column
 problem that shrinks as levels consume freedom.
 
-The level loop is compiled with numba (cached on disk): the problems are small (nv ~ 40),
-so interpreter overhead, not arithmetic, would otherwise dominate.
+Per level, with P = J Z (m x k) and r the level's residual:
+  - damped least squares y = P^T (P P^T + lambda^2 I)^-1 r, by Cholesky on the smaller side
+    of P (the same y as the damped SVD pseudo-inverse sigma / (sigma^2 + lambda^2));
+  - the next basis Z' = Z Q2, Q2 spanning null(P), from a column-pivoted Householder QR of
+    P^T whose reflections are applied to Z directly; rank = pivots above rank_tolerance.
+
+The level loop is compiled with numba (cached on disk): at nv ~ 40, interpreter and LAPACK
+call overheads, not arithmetic, would otherwise dominate.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ class HierarchySolution:
 
 
 class DampedHierarchy:
-    """Prioritized damped least squares (SVD).
+    """Prioritized damped least squares.
 
     damping: lambda of the damped pseudo-inverse sigma / (sigma^2 + lambda^2), per level.
     rank_tolerance: singular values at or below it leave their direction to lower levels.
@@ -92,38 +98,103 @@ def _solve_levels(jacobian, target, offsets, free, start, damping, rank_toleranc
         residual = wanted - rows @ dq
         if basis.shape[1] > 0 and rows.shape[0] > 0:
             projected = rows @ basis
-            if level == level_count - 1:
-                y = _damped_least_squares(projected, residual, damping_sq)
-                dq += basis @ y
-            else:
-                u, sigma, vt = np.linalg.svd(projected)
-                y = np.zeros(basis.shape[1])
-                rank = 0
-                for mode in range(len(sigma)):
-                    coefficient = sigma[mode] / (sigma[mode] ** 2 + damping_sq)
-                    y += coefficient * (u[:, mode] @ residual) * vt[mode]
-                    if sigma[mode] > rank_tolerance:
-                        rank += 1
-                dq += basis @ y
-                basis = basis @ np.ascontiguousarray(vt[rank:].T)
+            dq += basis @ _damped_least_squares(projected, residual, damping_sq)
+            if level < level_count - 1:
+                basis = _nullspace_update(projected, basis, rank_tolerance)
             residual = wanted - rows @ dq
         residuals[level] = np.sqrt(residual @ residual)
     return dq, residuals
 
 
 @numba.njit(cache=True)
-def _damped_least_squares(matrix, rhs, damping_sq):
-    """argmin |A y - b|^2 + lambda^2 |y|^2 by normal equations on the smaller side of A.
+def _spd_solve(gram, rhs):
+    """x with gram x = rhs, gram symmetric positive definite (Cholesky, small sizes)."""
+    n = gram.shape[0]
+    low = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = gram[i, j]
+            for p in range(j):
+                acc -= low[i, p] * low[j, p]
+            if i == j:
+                low[i, i] = np.sqrt(acc)
+            else:
+                low[i, j] = acc / low[j, j]
+    x = rhs.copy()
+    for i in range(n):
+        acc = x[i]
+        for p in range(i):
+            acc -= low[i, p] * x[p]
+        x[i] = acc / low[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = x[i]
+        for p in range(i + 1, n):
+            acc -= low[p, i] * x[p]
+        x[i] = acc / low[i, i]
+    return x
 
-    Used for the last level, which needs no nullspace: the same solution as the damped
-    SVD pseudo-inverse at a fraction of the cost."""
-    rows, cols = matrix.shape
-    if rows >= cols:
-        gram = matrix.T @ matrix
-        for i in range(cols):
+@numba.njit(cache=True)
+def _damped_least_squares(projected, residual, damping_sq):
+    """argmin |P y - r|^2 + lambda^2 |y|^2 through the smaller Gram matrix of P."""
+    rows, cols = projected.shape
+    if rows <= cols:
+        gram = projected @ projected.T
+        for i in range(rows):
             gram[i, i] += damping_sq
-        return np.linalg.solve(gram, matrix.T @ rhs)
-    gram = matrix @ matrix.T
-    for i in range(rows):
+        return projected.T @ _spd_solve(gram, residual)
+    gram = projected.T @ projected
+    for i in range(cols):
         gram[i, i] += damping_sq
-    return matrix.T @ np.linalg.solve(gram, rhs)
+    return _spd_solve(gram, projected.T @ residual)
+
+@numba.njit(cache=True)
+def _nullspace_update(projected, basis, tolerance):
+    """basis @ Q2, Q2 an orthonormal basis of null(projected): column-pivoted Householder
+    QR of projected^T (pivots <= tolerance end the rank), reflections applied to basis."""
+    a = projected.T.copy()          # k x m
+    k, m = a.shape
+    b = basis.copy()                # nv x k
+    nv = b.shape[0]
+    norms = np.zeros(m)
+    rank = 0
+    for j in range(min(k, m)):
+        for c in range(j, m):
+            acc = 0.0
+            for r in range(j, k):
+                acc += a[r, c] * a[r, c]
+            norms[c] = acc
+        pivot = j
+        for c in range(j + 1, m):
+            if norms[c] > norms[pivot]:
+                pivot = c
+        if np.sqrt(norms[pivot]) <= tolerance:
+            break
+        if pivot != j:
+            for r in range(k):
+                a[r, j], a[r, pivot] = a[r, pivot], a[r, j]
+        length = np.sqrt(norms[pivot])
+        alpha = -length if a[j, j] >= 0 else length
+        v = a[j:, j].copy()
+        v[0] -= alpha
+        v_sq = 0.0
+        for r in range(k - j):
+            v_sq += v[r] * v[r]
+        rank += 1
+        if v_sq == 0.0:
+            continue
+        scale = 2.0 / v_sq
+        for c in range(j, m):
+            acc = 0.0
+            for r in range(k - j):
+                acc += v[r] * a[j + r, c]
+            acc *= scale
+            for r in range(k - j):
+                a[j + r, c] -= acc * v[r]
+        for row in range(nv):
+            acc = 0.0
+            for r in range(k - j):
+                acc += b[row, j + r] * v[r]
+            acc *= scale
+            for r in range(k - j):
+                b[row, j + r] -= acc * v[r]
+    return np.ascontiguousarray(b[:, rank:])
