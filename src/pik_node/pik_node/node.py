@@ -96,6 +96,7 @@ class PikNode(Node):
         self._stop = threading.Event()
         self._loop_thread = threading.Thread(target=self._run_loop, name="pik_loop",
                                              daemon=True)
+        self.cycles = 0
         self.overruns = 0
         self._status_template = None
         self.get_logger().info(
@@ -226,17 +227,18 @@ class PikNode(Node):
             self._tick()
             delay = next_tick - time.monotonic()
             if delay > 0:
-                self._stop.wait(delay)
+                time.sleep(delay)  # clock_nanosleep: tighter wake-ups than a condition wait
             else:
                 missed = int(-delay // self._period)
                 self.overruns += missed
                 next_tick += missed * self._period
 
     def _tick(self):
+        stamp = self.get_clock().now().to_msg()
         with self._lock:
             result = self.solver.step(self.q)
             self.q = result.q
-            stamp = self.get_clock().now().to_msg()
+            self.cycles += 1
             status = self._fill_status(stamp, result)
         joint_state = JointState(header=_header(stamp), name=self._joint_names,
                                  position=self.q[self._joint_q_index].tolist())
@@ -257,6 +259,8 @@ class PikNode(Node):
         status.strategy = self.solver.strategy_name
         status.clamping_iterations = result.clamping_iterations
         status.solve_time = result.solve_time
+        status.cycles = self.cycles
+        status.overruns = self.overruns
         status.damping = result.damping.tolist()
         status.clamped = result.clamped.tolist()
         status.last_input_stamp = self.last_input_stamp
