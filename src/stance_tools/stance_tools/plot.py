@@ -143,23 +143,33 @@ def plot_joints(run, path, pattern=None, moving_only=False):
     save(fig, path)
 
 
+MOST_DAMPED = 8        # joints drawn as curves; the heat map shows them all
+ENVELOPE_WINDOW = 0.05  # s: h is non-zero only while a joint heads toward its limit, so
+                        # raw samples flicker; curves show the maximum over this window
+
+
 def plot_damping(run, path):
-    """h(t) of the joints ever damped, and a time x joint heat map of h for all joints."""
+    """h(t) of the most damped joints (window maximum), and a time x joint heat map of h
+    (every sample) for all joints."""
     names = run.damping.names()
-    active = [n for n in names if run.damping.arrays(n)[1].max() > 0.0]
+    damped = {n: run.damping.arrays(n)[1].mean() for n in names
+              if run.damping.arrays(n)[1].max() > 0.0}
+    active = sorted(damped, key=damped.get, reverse=True)[:MOST_DAMPED]
     fig, (top, bottom) = plt.subplots(
         2, 1, figsize=(11, 4 + 0.18 * len(names)), height_ratios=[1.0, 0.4 + 0.04 * len(names)],
         layout="constrained")
     for name in active:
         times, h = run.damping.arrays(name)
-        (line,) = top.plot(times, h, lw=1.0, label=name)
+        (line,) = top.plot(times, window_maximum(times, h, ENVELOPE_WINDOW), lw=1.2,
+                           label=name)
         clamped = run.clamped.arrays(name)[1] > 0
         if clamped.any():
-            top.plot(times[clamped], h[clamped], "|", ms=4, color=line.get_color())
+            top.plot(times[clamped], np.full(clamped.sum(), 1.02), "|", ms=4,
+                     color=line.get_color())
     if active:
-        top.legend(fontsize=7, ncol=max(1, math.ceil(len(active) / 12)), loc="upper left",
-                   bbox_to_anchor=(1.01, 1.0))
-        top.set_title("Progressive clamping h of the joints ever damped (| marks: clamped)",
+        top.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        top.set_title(f"Progressive clamping h of the {len(active)} most damped joints "
+                      f"(maximum over {1000 * ENVELOPE_WINDOW:.0f} ms; | at top: clamped)",
                       fontsize=10)
     else:
         top.text(0.5, 0.5, "no joint was ever damped: h = 0 throughout", ha="center",
@@ -183,6 +193,12 @@ def plot_damping(run, path):
         bottom.text(0.5, 0.5, "the solver status lists no limited joint", ha="center",
                     va="center", transform=bottom.transAxes)
     save(fig, path)
+
+
+def window_maximum(times, values, window):
+    """Maximum of values over the trailing `window` seconds at each sample."""
+    start = np.searchsorted(times, times - window)
+    return np.array([values[first:last + 1].max() for last, first in enumerate(start)])
 
 
 def heat_map(series, names):
