@@ -206,3 +206,23 @@ def test_stack_replacement_and_task_toggle(pik):
     status = fresh_status(probe)
     assert not task_status(status, "left_hand").enabled
     assert all("left_hand" not in level.tasks for level in status.levels)
+
+
+def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
+    """The real `stance teleop` process drives the real pik_node through the target topic."""
+    node, probe = pik
+    path = tmp_path / "nudge.yaml"
+    path.write_text("- {offset: [0.05, 0.0, 0.06], duration: 1.0}\n")
+    before = fresh_status(probe)
+    start = np.array(probe.latest_joint_state().position)
+    hand_start = task_status(before, "right_hand").target.position
+    import subprocess
+    done = subprocess.run(["stance", "teleop", "--task", "right_hand", "--path", str(path),
+                           "--timeout", "20"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    wait_until(lambda: task_status(probe.latest_status(), "right_hand").error_norm < 1e-4,
+               10, what="right hand to settle on the path's end")
+    hand_end = task_status(probe.latest_status(), "right_hand").target.position
+    assert math.isclose(hand_end.x - hand_start.x, 0.05, abs_tol=1e-9)
+    assert math.isclose(hand_end.z - hand_start.z, 0.06, abs_tol=1e-9)
+    assert np.abs(np.array(probe.latest_joint_state().position) - start).max() > 0.01

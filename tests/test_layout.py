@@ -1,0 +1,33 @@
+"""The installed workspace has the layout a full ROS 2 install expects: `ros2 run <pkg>
+<exe>` looks the package up in the ament index and runs lib/<pkg>/<exe> of its prefix."""
+
+import os
+
+import pytest
+from ament_index_python.packages import get_package_prefix, get_package_share_directory
+
+
+@pytest.mark.parametrize("package, executable", [("pik_node", "pik_node"),
+                                                 ("stance_tools", "stance")])
+def test_executables_are_where_ros2_run_looks(package, executable):
+    path = os.path.join(get_package_prefix(package), "lib", package, executable)
+    assert os.access(path, os.X_OK), path
+
+
+def test_interface_definitions_are_installed_for_recorders():
+    share = get_package_share_directory("stance_msgs")
+    for name in ("SolverStatus", "TaskSpec", "ContactStance", "StancePlan", "StabilizerState"):
+        assert os.path.isfile(os.path.join(share, "msg", f"{name}.msg")), name
+
+
+def test_parameter_file_is_installed():
+    share = get_package_share_directory("pik_node")
+    assert os.path.isfile(os.path.join(share, "config", "pik_node.yaml"))
+
+
+def test_library_does_not_import_rclpy():
+    import subprocess
+    import sys
+    code = ("import sys, stance, stance.pik, stance.hierarchy, stance.limits, stance.tasks; "
+            "sys.exit('rclpy' in sys.modules)")
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
