@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 from conftest import wait_until
+from stance_tools.processes import ProcessGroup
 from helpers.probe import PikProbe, point_target, pose_target, task_status
 from sensor_msgs.msg import JointState
 from stance_msgs.msg import TaskSpec
@@ -18,7 +19,6 @@ DEMO_TASKS = ["left_foot", "right_foot", "com", "right_hand", "posture"]
 @pytest.fixture(scope="module")
 def pik(tmp_path_factory):
     """One pik_node for the module (its survival across bad inputs is part of the test)."""
-    from conftest import ProcessGroup
     group = ProcessGroup(tmp_path_factory.mktemp("pik"))
     node = group.start("pik_node", name="pik_node")
     probe = PikProbe()

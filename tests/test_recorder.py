@@ -69,7 +69,7 @@ def test_message_definition_embeds_each_dependency_once():
 
 def test_stream_recorded_without_loss(processes, tmp_path):
     bag_dir = tmp_path / "stream"
-    publisher = processes.python(str(HELPERS / "publish_stream.py"), "--rate", "500",
+    publisher = processes.start(sys.executable, str(HELPERS / "publish_stream.py"), "--rate", "500",
                                  "--duration", "10", "--start-delay", "1.5", name="publisher")
     wait_until(lambda: "latched" in log_text(publisher), 20, what="the latched publication")
     recorder_start = time.time_ns()

@@ -10,12 +10,10 @@ import time
 
 import numpy as np
 import pytest
-import rclpy
 import yaml
 from conftest import wait_until
 from geometry_msgs.msg import Point, PointStamped, Pose, PoseStamped, Quaternion
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
+from helpers.probe import BackgroundNode
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from stance_msgs.msg import SolverStatus, TaskStatus
@@ -194,14 +192,12 @@ def test_keyboard_loop_on_a_terminal_publishes_keys_and_restores_it():
 
 # --- Over DDS -----------------------------------------------------------------------------------
 
-class FakePik:
+class FakePik(BackgroundNode):
     """Stands in for pik_node: publishes /pik/status at 20 Hz listing `tasks` (name ->
     (target Pose, target message type)) and records what arrives on their target topics."""
 
     def __init__(self, tasks):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = Node("fake_pik_node", context=self.context)
+        super().__init__("fake_pik_node")
         self.received = {name: [] for name in tasks}
         status = SolverStatus(tasks=[TaskStatus(name=name, target=pose, current=pose)
                                      for name, (pose, _) in tasks.items()])
@@ -210,27 +206,12 @@ class FakePik:
         for name, (_, message_type) in tasks.items():
             self.node.create_subscription(message_type, f"/pik/tasks/{name}/target",
                                           self.received[name].append, RELIABLE)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._running = True
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self):
-        while self._running and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.05)
+        self.start_spinning()
 
     def targets(self, name, settle=0.2):
         """The targets received so far on a task's topic, after settle s for stragglers."""
         time.sleep(settle)
         return list(self.received[name])
-
-    def close(self):
-        self._running = False
-        self._thread.join(timeout=2.0)
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
 
 
 def pose_msg(target):

@@ -1,5 +1,5 @@
-"""A test-side rclpy node that talks to pik_node: collects its outputs, publishes targets,
-calls its services. Spins in a background thread; close() stops it."""
+"""Test-side rclpy nodes spun in a background thread: a probe that talks to pik_node
+(collects its outputs, publishes targets, calls its services) and the base they share."""
 
 from __future__ import annotations
 
@@ -18,11 +18,39 @@ from stance_msgs.srv import SetStack, SetTaskEnabled
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 
-class PikProbe:
-    def __init__(self, name="pik_probe"):
+class BackgroundNode:
+    """An rclpy node in its own context, spun by a background thread until close()."""
+
+    def __init__(self, name):
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = Node(name, context=self.context)
+
+    def start_spinning(self):
+        """Call once the node's entities exist."""
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._running = True
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self):
+        while self._running and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self):
+        self._running = False
+        self._thread.join(timeout=2.0)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+class PikProbe(BackgroundNode):
+    """Collects pik_node's outputs, publishes targets, calls its services."""
+
+    def __init__(self, name="pik_probe"):
+        super().__init__(name)
         self.lock = threading.Lock()
         self.joint_states = []
         self.statuses = []
@@ -33,15 +61,7 @@ class PikProbe:
         self.set_enabled_client = self.node.create_client(SetTaskEnabled,
                                                           "/pik/set_task_enabled")
         self._publishers = {}
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._running = True
-        self._thread.start()
-
-    def _spin(self):
-        while self._running and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.05)
+        self.start_spinning()
 
     def _on_joint_state(self, msg):
         with self.lock:
@@ -83,14 +103,6 @@ class PikProbe:
         if not future.done():
             raise TimeoutError(f"no response from {client.srv_name}")
         return future.result()
-
-    def close(self):
-        self._running = False
-        self._thread.join(timeout=2.0)
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
 
 def task_status(status, name):
     for task in status.tasks:

@@ -19,6 +19,8 @@ class ProcessGroup:
         """Start argv; stdout and stderr go to <log_dir>/<name>.log."""
         name = name or Path(argv[0]).name
         log_path = self.log_dir / f"{name}.log"
+        if log_path.exists():  # a second process of the same name keeps its own log
+            log_path = self.log_dir / f"{name}-{len(self._children)}.log"
         log = open(log_path, "w")
         proc = subprocess.Popen(list(argv), stdout=log, stderr=subprocess.STDOUT,
                                 env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})),
