@@ -50,7 +50,7 @@ def test_cubic_is_continuously_differentiable():
 # Decisions of a strategy for one joint in [LOWER, UPPER], damping zones 0.2 rad thick.
 
 def decide(strategy: str, q: float, dq: float):
-    limits = RevoluteLimits([LOWER], [UPPER], activation=ACTIVATION)
+    limits = RevoluteLimits(["joint"], [0], [0], [LOWER], [UPPER], activation=ACTIVATION)
     return make_strategy(strategy).decide(limits, np.array([q]), np.array([dq]),
                                           np.ones(1, dtype=bool))
 

@@ -54,7 +54,10 @@ class DampedHierarchy:
         priority equality dq[fixed_index] = fixed_dq (clamped or damped joints)."""
         return self.solve_stacked(*stack_levels(levels, nv), fixed_index, fixed_dq)
 
-    def solve_stacked(self, jacobian, target, offsets, fixed_index=(), fixed_dq=()):
+    uses_bounds = False  # inequality bounds on dq are the QP hierarchy's business
+
+    def solve_stacked(self, jacobian, target, offsets, fixed_index=(), fixed_dq=(),
+                      bounds=None):
         """Same as solve() on levels already stacked by stack_levels()."""
         nv = jacobian.shape[1]
         free = np.ones(nv, dtype=np.bool_)

@@ -1,9 +1,11 @@
-"""Joint limit strategies for the clamping loop of the PIK (Raunhardt and Boulic).
+"""Joint limit models and strategies for the clamping loop of the PIK (Raunhardt and Boulic).
 
-Each strategy looks at a candidate joint variation dq of the free (not yet fixed) limited
-joints and returns which of them must be fixed, and to what variation, before the
-prioritized solution is evaluated again with those fixed variations as highest-priority
-equality constraints.
+A limit model owns some velocity degrees of freedom (v indices) of the robot and knows
+their limits; given a candidate variation dq it decides which of its free DoFs must be
+fixed, and to what variation, before the prioritized solution is evaluated again with the
+fixed variations as highest-priority equality constraints. It reports h per DoF.
+A strategy says how the models decide (clamping only, or progressive clamping) and may add
+levels of its own.
 
 - none: nothing is ever fixed.
 - clamping (Baerlocher-Boulic): a joint whose q + dq leaves [lower, upper] is fixed on the
@@ -26,11 +28,11 @@ import numpy as np
 
 @dataclass
 class LimitDecision:
-    """Joints (indices into the limited-joint arrays) to fix and their fixed variations."""
+    """Velocity DoFs (indices into dq) to fix and their fixed variations."""
 
     index: np.ndarray
     dq: np.ndarray
-    h: np.ndarray     # damping value per fixed joint, 1 = clamped on the limit
+    h: np.ndarray     # damping value per fixed DoF, 1 = clamped on the limit
 
 
 @numba.njit(cache=True)
@@ -72,14 +74,18 @@ def _progressive_decision(q, dq, lower, upper, lower_threshold, upper_threshold,
 
 
 class RevoluteLimits:
-    """Bounds and damping thresholds of a robot's limited 1-DoF joints (rad or m).
+    """Limit model of 1-coordinate joints (revolute or prismatic): bounds and damping
+    thresholds (rad or m).
 
     activation: damping zone thickness next to each limit (rad), at most
     `max_activation_fraction` of the joint's range so narrow joints keep a free middle.
     """
 
-    def __init__(self, lower, upper, activation: float = 0.2,
+    def __init__(self, names, q_index, v_index, lower, upper, activation: float = 0.2,
                  max_activation_fraction: float = 0.4):
+        self.dof_names = list(names)
+        self.q_index = np.asarray(q_index, dtype=int)
+        self.v_index = np.asarray(v_index, dtype=int)
         self.lower = np.asarray(lower, dtype=float)
         self.upper = np.asarray(upper, dtype=float)
         thickness = np.minimum(activation, max_activation_fraction * (self.upper - self.lower))
@@ -87,46 +93,63 @@ class RevoluteLimits:
         self.upper_threshold = self.upper - thickness
         self.thickness = thickness
 
-    def keep_inside(self, q, q_next):
-        """Project q_next into the limits without ever moving a joint further out than q:
-        removes the negligible overshoot of variations the decision ignored."""
-        return np.clip(q_next, np.minimum(self.lower, q), np.maximum(self.upper, q))
+    @classmethod
+    def from_robot(cls, robot, activation: float = 0.2) -> RevoluteLimits:
+        """Every limited 1-DoF joint of the robot (the floating base never)."""
+        return cls(robot.limited_joint_names, robot.limited_q_index, robot.limited_v_index,
+                   robot.lower, robot.upper, activation)
+
+    def keep_inside(self, q, q_next) -> None:
+        """Project q_next (in place) into the limits without ever moving a joint further
+        out than q: removes the negligible overshoot of variations the decision ignored."""
+        current = q[self.q_index]
+        q_next[self.q_index] = np.clip(q_next[self.q_index], np.minimum(self.lower, current),
+                                       np.maximum(self.upper, current))
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
+        """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
         fix, varied, h = _progressive_decision(
-            q, dq, self.lower, self.upper, self.lower_threshold, self.upper_threshold,
-            self.thickness, free, progressive)
+            q[self.q_index], dq[self.v_index], self.lower, self.upper, self.lower_threshold,
+            self.upper_threshold, self.thickness, free[self.v_index], progressive)
         index = np.flatnonzero(fix)
-        return LimitDecision(index, varied[index], h[index])
+        return LimitDecision(self.v_index[index], varied[index], h[index])
 
 
-class NoLimits:
+class Strategy:
+    """Base of the joint limit strategies: how limit models decide, and extra levels."""
+
+    name = ""
+    enforces_limits = True
+    progressive = False
+
+    def decide(self, model, q, dq, free) -> LimitDecision:
+        return model.decide(q, dq, free, self.progressive)
+
+    def extra_levels(self, solver, q) -> list:
+        """Levels appended below the task levels (lowest priority); none by default."""
+        return []
+
+
+class NoLimits(Strategy):
     name = "none"
     enforces_limits = False
 
-    def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
+    def decide(self, model, q, dq, free) -> LimitDecision:
         empty = np.zeros(0)
         return LimitDecision(np.zeros(0, dtype=int), empty, empty)
 
 
-class Clamping:
+class Clamping(Strategy):
     """Baerlocher-Boulic clamping: fix on the limit any joint that q + dq takes outside."""
 
     name = "clamping"
-    enforces_limits = True
-
-    def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
-        return limits.decide(q, dq, free, progressive=False)
 
 
-class ProgressiveClamping:
+class ProgressiveClamping(Strategy):
     """Raunhardt-Boulic progressive clamping (eq. 1-5), then the clamping check."""
 
     name = "progressive"
-    enforces_limits = True
-
-    def decide(self, limits: RevoluteLimits, q, dq, free) -> LimitDecision:
-        return limits.decide(q, dq, free, progressive=True)
+    progressive = True
 
 
 STRATEGIES = {strategy.name: strategy for strategy in (NoLimits, Clamping, ProgressiveClamping)}

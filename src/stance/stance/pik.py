@@ -4,8 +4,9 @@ One IK step from configuration q:
   1. kinematics of q (Pinocchio: joint Jacobians, frame placements, CoM Jacobian);
   2. the enabled tasks, grouped by priority, give one Level each (rows scaled by
      sqrt(weight), targets = the tasks' capped steps);
-  3. clamping loop: solve the hierarchy; ask the limit strategy which free joints must be
-     damped or clamped; fix them as highest-priority equalities; repeat until none is new;
+  3. clamping loop: solve the hierarchy; ask every limit model, through the strategy, which
+     of its free DoFs must be damped or clamped; fix them as highest-priority equalities;
+     repeat until none is new (the strategy may add lowest-priority levels, e.g. GPM);
   4. optionally scale dq uniformly so no joint exceeds its velocity limit over dt
      (scaling toward q keeps every joint inside its limits);
   5. q_next = integrate(q, dq) on the configuration manifold.
@@ -40,8 +41,8 @@ class StepResult:
     dq: np.ndarray              # applied variation (nv)
     levels: list                # LevelReport per level with enabled tasks, highest first
     task_errors: dict           # task name -> |e| over its selected axes at q (m, rad)
-    damping: np.ndarray         # h per limited joint (0 free, 1 clamped on a limit)
-    clamped: np.ndarray         # bool per limited joint: variation fixed in the loop
+    damping: np.ndarray         # h per limited DoF (0 free, 1 clamped on a limit)
+    clamped: np.ndarray         # bool per limited DoF: variation fixed in the loop
     clamping_iterations: int    # hierarchy solutions evaluated
     solve_time: float           # s
     velocity_scale: float = 1.0  # uniform dq scaling applied for velocity limits
@@ -65,14 +66,23 @@ class PIKSolver:
     strategy: joint limit strategy name (none, clamping, progressive).
     damping: damped least squares lambda. activation: damping zone thickness (rad).
     dt: if set, joint variations respect the URDF velocity limits over dt seconds.
+    hierarchy: the prioritized solver (default DampedHierarchy(damping)); one whose
+        `uses_bounds` is true also receives per-DoF bounds on dq (joint and velocity limits).
+    limit_models: limit models beyond the robot's 1-DoF joints (e.g. swing joints); their
+        DoFs must not overlap.
     """
 
     def __init__(self, robot, strategy: str = "progressive", damping: float = 1e-3,
-                 activation: float = 0.2, dt: float | None = None):
+                 activation: float = 0.2, dt: float | None = None, hierarchy=None,
+                 limit_models=()):
         self.robot = robot
         self.strategy = make_strategy(strategy)
-        self.hierarchy = DampedHierarchy(damping=damping)
-        self.limits = RevoluteLimits(robot.lower, robot.upper, activation=activation)
+        self.hierarchy = hierarchy or DampedHierarchy(damping=damping)
+        self.limits = RevoluteLimits.from_robot(robot, activation)
+        self.limit_models = [self.limits, *limit_models]
+        self.limited_dof_names = [name for model in self.limit_models
+                                  for name in model.dof_names]
+        self._dof_v_index = np.concatenate([model.v_index for model in self.limit_models])
         self.dt = dt
         self.tasks = {}
         self._needs_com = False
@@ -132,24 +142,30 @@ class PIKSolver:
         jacobian, target, error = self._fill_levels(q)
         offsets = self._layout.offsets
 
-        limited_v = robot.limited_v_index
-        q_limited = q[robot.limited_q_index]
-        fixed = np.zeros(len(limited_v), dtype=bool)
-        fixed_dq = np.zeros(len(limited_v))
-        h = np.zeros(len(limited_v))
+        extra = self.strategy.extra_levels(self, q)
+        if extra:
+            jacobian, target, offsets = _append_levels(jacobian, target, offsets, extra)
+        bounds = self._dq_bounds(q) if getattr(self.hierarchy, "uses_bounds", False) else None
+        nv = robot.model.nv
+        fixed = np.zeros(nv, dtype=bool)
+        fixed_dq = np.zeros(nv)
+        h = np.zeros(nv)
         iterations = 0
         while True:
             index = np.flatnonzero(fixed)
-            solution = self.hierarchy.solve_stacked(jacobian, target, offsets,
-                                                    limited_v[index], fixed_dq[index])
+            solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
+                                                    fixed_dq[index], bounds=bounds)
             iterations += 1
-            decision = self.strategy.decide(self.limits, q_limited, solution.dq[limited_v],
-                                            ~fixed)
-            if len(decision.index) == 0:
+            changed = False
+            for model in self.limit_models:
+                decision = self.strategy.decide(model, q, solution.dq, ~fixed)
+                if len(decision.index):
+                    fixed[decision.index] = True
+                    fixed_dq[decision.index] = decision.dq
+                    h[decision.index] = decision.h
+                    changed = True
+            if not changed:
                 break
-            fixed[decision.index] = True
-            fixed_dq[decision.index] = decision.dq
-            h[decision.index] = decision.h
 
         dq = solution.dq
         scale = self._velocity_scale(dq)
@@ -157,11 +173,12 @@ class PIKSolver:
             dq = dq * scale
         q_next = pin.integrate(robot.model, q, dq)
         if self.strategy.enforces_limits:
-            q_next[robot.limited_q_index] = self.limits.keep_inside(
-                q_limited, q_next[robot.limited_q_index])
+            for model in self.limit_models:
+                model.keep_inside(q, q_next)
         levels, task_errors = self._reports(q, error, solution.step_residuals)
-        return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors, damping=h,
-                          clamped=fixed, clamping_iterations=iterations,
+        return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors,
+                          damping=h[self._dof_v_index], clamped=fixed[self._dof_v_index],
+                          clamping_iterations=iterations,
                           solve_time=time.perf_counter() - start, velocity_scale=scale)
 
     def levels(self) -> list:
@@ -229,6 +246,22 @@ class PIKSolver:
                 task_errors[task.name] = float(np.linalg.norm(task_error))
         return levels, task_errors
 
+    def _dq_bounds(self, q):
+        """Per-DoF bounds on dq (nv each): the 1-DoF joint limits, never requiring a start
+        outside them to move further out, and velocity limits over dt; +-inf elsewhere."""
+        nv = self.robot.model.nv
+        lower, upper = np.full(nv, -np.inf), np.full(nv, np.inf)
+        current = q[self.limits.q_index]
+        v_index = self.limits.v_index
+        lower[v_index] = np.minimum(self.limits.lower - current, 0.0)
+        upper[v_index] = np.maximum(self.limits.upper - current, 0.0)
+        if self.dt is not None:
+            speed = self.robot.velocity_limit * self.dt
+            usable = speed > 0
+            lower[v_index[usable]] = np.maximum(lower[v_index[usable]], -speed[usable])
+            upper[v_index[usable]] = np.minimum(upper[v_index[usable]], speed[usable])
+        return lower, upper
+
     def _velocity_scale(self, dq: np.ndarray) -> float:
         if self.dt is None:
             return 1.0
@@ -239,6 +272,14 @@ class PIKSolver:
         ratio = np.abs(dq[self.robot.limited_v_index][usable]) / bound[usable]
         worst = float(ratio.max(initial=0.0))
         return 1.0 / worst if worst > 1.0 else 1.0
+
+
+def _append_levels(jacobian, target, offsets, levels):
+    """Stacked arrays with `levels` appended as the lowest priorities."""
+    jacobian = np.vstack([jacobian, *(level.jacobian for level in levels)])
+    target = np.concatenate([target, *(level.target for level in levels)])
+    ends = offsets[-1] + np.cumsum([len(level.target) for level in levels])
+    return jacobian, target, np.concatenate([offsets, ends]).astype(np.int64)
 
 
 DEMO_STACK_FILE = Path(__file__).parent / "data" / "talos_demo_stack.yaml"
