@@ -280,7 +280,7 @@ class PikNode(Node):
     def _new_status(self) -> SolverStatus:
         layout = self.solver.levels()
         status = SolverStatus(header=_header(Time(), "world"),
-                              joint_names=self.robot.limited_joint_names)
+                              joint_names=self.solver.limited_dof_names)
         status.levels = [LevelStatus(priority=priority, tasks=names)
                          for priority, names in layout]
         status.tasks = [TaskStatus(name=name, priority=task.priority, enabled=task.enabled)

@@ -1,0 +1,474 @@
+"""Swing and ball-and-socket joint limits (Raunhardt and Boulic, IV.B.2 and IV.B.3).
+
+A joint rotation R (joint frame relative to its placement in the parent) is split about the
+joint's rest (bone) axis, the local z axis, as R = R_swing(s) R_twist(theta):
+- s (rad, 2-D swing plane): exponential-map vector [s_x, s_y, 0] of the rotation taking z
+  to the bone direction R z by the shortest arc; |s| is the swing angle (valid below pi);
+- theta (rad): the axial rotation about local z left over, in (-pi, pi].
+
+Limit domains live in the swing plane: an `EllipticCone` is an ellipse centred on s = 0 and
+distances are Euclidean in the plane (uniform thickness q_hat in the exponential map,
+Fig. 4); a `SphericalPolygon` is defined on the unit sphere of bone directions with
+great-circle edges and distances are geodesic angles on that sphere (Fig. 7), mapped to and
+from the plane by the exponential map. Both give a signed distance (inside positive), the
+closest boundary point and the outward normal of the limit in the swing plane, which is all
+the shared damping path `damp_swing` needs.
+
+Damping (eq. 6-10): with d = (q_hat - dist) / q_hat, a variation of the swing inside the
+activation zone that heads toward the limit (d_{k+1} > d_k > 0; eq. 8 as printed has the
+inequality reversed, we follow the meaning of eq. 3) has only its component orthogonal to
+the limit at the current closest point damped by h(d_k); the parallel component is kept.
+Second stage: a state outside the domain is clamped onto the closest boundary point, so the
+joint slides along the limit (Fig. 6). The twist follows the revolute rule (eq. 1-5).
+
+The limit models fix all three velocity DoFs of a Pinocchio spherical joint (local angular
+velocity, rad) to log3(R_k^T R'_{k+1}) whenever the swing or the twist is altered.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numba
+import numpy as np
+import pinocchio as pin
+import yaml
+
+from .limits import NEGLIGIBLE_VARIATION, LimitDecision, RevoluteLimits, cubic_step
+
+OUTSIDE_TOLERANCE = 1e-9   # rad: a state this close outside a limit counts as on it
+Z_AXIS = np.array([0.0, 0.0, 1.0])
+
+
+class LimitFileError(ValueError):
+    """A limit file is malformed; the message names the offending joint and field."""
+
+
+# Swing / twist decomposition.
+
+def swing_direction(s) -> np.ndarray:
+    """Unit bone direction R_swing(s) z (joint frame) of swing vector s (rad)."""
+    angle = math.hypot(s[0], s[1])
+    scale = math.sin(angle) / angle if angle > 1e-12 else 1.0
+    return np.array([scale * s[1], -scale * s[0], math.cos(angle)])
+
+
+def swing_from_direction(direction) -> np.ndarray:
+    """Swing vector s (rad) of the shortest-arc rotation taking z to `direction` (unit)."""
+    sine = math.hypot(direction[0], direction[1])
+    angle = math.atan2(sine, direction[2])
+    if sine < 1e-12:
+        return np.array([angle, 0.0])  # rest (0) or the singular antipode (pi)
+    return angle / sine * np.array([-direction[1], direction[0]])
+
+
+def swing_direction_jacobian(s) -> np.ndarray:
+    """d(swing_direction)/ds (3x2)."""
+    angle = math.hypot(s[0], s[1])
+    if angle < 1e-6:  # sinc(a) ~ 1 - a^2/6: (sinc)'/a ~ -1/3, sin(a)/a ~ 1
+        sinc, sinc_slope, sin_over = 1.0 - angle * angle / 6.0, -1.0 / 3.0, 1.0
+    else:
+        sinc = math.sin(angle) / angle
+        sinc_slope = (angle * math.cos(angle) - math.sin(angle)) / angle ** 3
+        sin_over = sinc
+    sx, sy = s
+    return np.array([[sinc_slope * sx * sy, sinc + sinc_slope * sy * sy],
+                     [-sinc - sinc_slope * sx * sx, -sinc_slope * sx * sy],
+                     [-sin_over * sx, -sin_over * sy]])
+
+
+def swing_rotation(s) -> np.ndarray:
+    return pin.exp3(np.array([s[0], s[1], 0.0]))
+
+
+def twist_rotation(theta: float) -> np.ndarray:
+    cosine, sine = math.cos(theta), math.sin(theta)
+    return np.array([[cosine, -sine, 0.0], [sine, cosine, 0.0], [0.0, 0.0, 1.0]])
+
+
+def swing_twist(rotation) -> tuple[np.ndarray, float]:
+    """(s (rad, swing plane), theta (rad)) with rotation = R_swing(s) R_twist(theta about z)."""
+    s = swing_from_direction(rotation[:, 2])
+    twist = swing_rotation(s).T @ rotation
+    return s, math.atan2(twist[1, 0], twist[0, 0])
+
+
+def rotation_from_swing_twist(s, theta: float) -> np.ndarray:
+    return swing_rotation(s) @ twist_rotation(theta)
+
+
+# Limit domains in the swing plane.
+
+class SwingDomain:
+    """Valid set of swing vectors s (rad). Subclasses give the signed distance to the limit
+    (inside positive, rad), its closest boundary point and outward normal."""
+
+    def signed_distance(self, s) -> float:
+        raise NotImplementedError
+
+    def closest_boundary_point(self, s) -> np.ndarray:
+        raise NotImplementedError
+
+    def normal_at(self, s) -> np.ndarray:
+        """Outward unit normal (swing plane) of the limit at the boundary point closest to s:
+        the direction of steepest approach to the limit from s."""
+        raise NotImplementedError
+
+    def contains(self, s, tolerance: float = 0.0) -> bool:
+        return self.signed_distance(s) >= -tolerance
+
+
+@numba.njit(cache=True)
+def _ellipse_closest_point(a, b, x, y):
+    """Closest point of the ellipse (x/a)^2 + (y/b)^2 = 1 to (x, y) (Eberly's bisection)."""
+    swap = a < b
+    if swap:
+        a, b, x, y = b, a, y, x
+    y0, y1 = abs(x), abs(y)
+    if y1 > 0.0:
+        if y0 > 0.0:
+            low = -b * b + b * y1
+            high = -b * b + math.sqrt(a * a * y0 * y0 + b * b * y1 * y1)
+            for _ in range(200):
+                t = 0.5 * (low + high)
+                if t == low or t == high:
+                    break
+                r0, r1 = a * y0 / (t + a * a), b * y1 / (t + b * b)
+                if r0 * r0 + r1 * r1 > 1.0:
+                    low = t
+                else:
+                    high = t
+            t = 0.5 * (low + high)
+            x0, x1 = a * a * y0 / (t + a * a), b * b * y1 / (t + b * b)
+        else:
+            x0, x1 = 0.0, b
+    else:
+        limit = (a * a - b * b) / a
+        if y0 < limit:
+            x0 = a * a * y0 / (a * a - b * b)
+            x1 = b * math.sqrt(max(0.0, 1.0 - (x0 / a) ** 2))
+        else:
+            x0, x1 = a, 0.0
+    x0, x1 = math.copysign(x0, x), math.copysign(x1, y)
+    if swap:
+        x0, x1 = x1, x0
+    return x0, x1
+
+
+class EllipticCone(SwingDomain):
+    """Ellipse (s_x / a)^2 + (s_y / b)^2 <= 1 in the swing plane: semi-axes a along s_x
+    (rotation about local x) and b along s_y, rad, both in (0, pi)."""
+
+    def __init__(self, a: float, b: float):
+        if not (0.0 < a < math.pi and 0.0 < b < math.pi):
+            raise ValueError(f"cone semi-axes must lie in (0, pi) rad, got a={a}, b={b}")
+        self.a, self.b = float(a), float(b)
+
+    def closest_boundary_point(self, s) -> np.ndarray:
+        return np.array(_ellipse_closest_point(self.a, self.b, float(s[0]), float(s[1])))
+
+    def signed_distance(self, s) -> float:
+        distance = float(np.linalg.norm(self.closest_boundary_point(s) - s))
+        inside = (s[0] / self.a) ** 2 + (s[1] / self.b) ** 2 <= 1.0
+        return distance if inside else -distance
+
+    def normal_at(self, s) -> np.ndarray:
+        point = self.closest_boundary_point(s)
+        normal = np.array([point[0] / self.a ** 2, point[1] / self.b ** 2])
+        return normal / np.linalg.norm(normal)
+
+
+class SphericalPolygon(SwingDomain):
+    """Convex spherical polygon of bone directions (joint frame) containing the rest
+    direction z strictly inside; edges are great-circle arcs between consecutive vertices.
+    Distances are geodesic angles on the unit sphere (rad)."""
+
+    def __init__(self, vertices):
+        vertices = np.asarray(vertices, dtype=float)
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 3:
+            raise ValueError("a spherical polygon needs at least 3 vertices [x, y, z]")
+        norms = np.linalg.norm(vertices, axis=1)
+        if np.any(norms < 1e-9):
+            raise ValueError("spherical polygon vertices must be non-zero directions")
+        self.vertices = vertices / norms[:, None]
+        following = np.roll(self.vertices, -1, axis=0)
+        normals = np.cross(self.vertices, following)
+        lengths = np.linalg.norm(normals, axis=1)
+        if np.any(lengths < 1e-9):
+            raise ValueError("consecutive spherical polygon vertices must be distinct and "
+                             "not antipodal")
+        normals /= lengths[:, None]
+        self._arc_axes = normals.copy()  # start x end: orients each edge's arc
+        if np.sum(normals @ self.vertices.mean(axis=0)) < 0.0:
+            normals = -normals  # clockwise vertices: make the normals point inward
+        if np.any(self.vertices @ normals.T < -1e-9):
+            raise ValueError("spherical polygon must be convex with vertices in order")
+        if np.any(normals @ Z_AXIS <= 1e-9):
+            raise ValueError("the rest direction z must lie strictly inside the polygon")
+        self.inward_normals = normals
+        self._edge_ends = following
+
+    def _closest(self, direction):
+        """(closest boundary direction, index of its edge, at a vertex) for a unit direction."""
+        best, best_cosine, best_edge, at_vertex = None, -2.0, 0, False
+        for edge, (start, end, axis) in enumerate(
+                zip(self.vertices, self._edge_ends, self._arc_axes)):
+            projected = direction - (direction @ axis) * axis
+            length = np.linalg.norm(projected)
+            candidate, vertex = None, False
+            if length > 1e-12:
+                projected /= length
+                inside_arc = (np.cross(start, projected) @ axis >= 0.0
+                              and np.cross(projected, end) @ axis >= 0.0)
+                if inside_arc:
+                    candidate = projected
+            if candidate is None:
+                vertex = True
+                candidate = start if direction @ start >= direction @ end else end
+            cosine = direction @ candidate
+            if cosine > best_cosine:
+                best, best_cosine, best_edge, at_vertex = candidate, cosine, edge, vertex
+        return best, best_edge, at_vertex
+
+    def contains(self, s, tolerance: float = 0.0) -> bool:
+        return bool(np.all(self.inward_normals @ swing_direction(s) >= -math.sin(tolerance)))
+
+    def closest_boundary_point(self, s) -> np.ndarray:
+        return swing_from_direction(self._closest(swing_direction(s))[0])
+
+    def signed_distance(self, s) -> float:
+        direction = swing_direction(s)
+        closest = self._closest(direction)[0]
+        angle = math.atan2(np.linalg.norm(np.cross(direction, closest)), direction @ closest)
+        inside = np.all(self.inward_normals @ direction >= 0.0)
+        return angle if inside else -angle
+
+    def normal_at(self, s) -> np.ndarray:
+        direction = swing_direction(s)
+        closest, edge, at_vertex = self._closest(direction)
+        toward = closest - (closest @ direction) * direction  # tangent at s toward the limit
+        if np.linalg.norm(toward) > 1e-9:
+            outward = toward if np.all(self.inward_normals @ direction >= 0.0) else -toward
+        elif at_vertex:  # on a vertex: between its two edges
+            outward = -(self.inward_normals[edge] + self.inward_normals[edge - 1])
+        else:
+            outward = -self.inward_normals[edge]
+        normal = swing_direction_jacobian(s).T @ outward  # gradient of the distance in s
+        return normal / np.linalg.norm(normal)
+
+
+def damp_swing(domain: SwingDomain, thickness: float, s, s_next, progressive: bool):
+    """Altered next swing (rad) and h for a move s -> s_next (eq. 6-10 and the second-stage
+    clamp), or (None, 0) when the move is left alone. thickness: q_hat (rad)."""
+    distance_next = domain.signed_distance(s_next)
+    if distance_next < -OUTSIDE_TOLERANCE:  # eq. 7, then the second stage
+        return domain.closest_boundary_point(s_next), 1.0
+    if not progressive:
+        return None, 0.0
+    depth = (thickness - domain.signed_distance(s)) / thickness          # d_k, eq. 6
+    depth_next = (thickness - distance_next) / thickness                 # d_{k+1}
+    if not depth_next > depth > 0.0:
+        return None, 0.0
+    h = cubic_step(depth)                                                # eq. 8
+    variation = np.asarray(s_next) - s
+    normal = domain.normal_at(s)
+    orthogonal = (variation @ normal) * normal
+    damped = s + (1.0 - h) * orthogonal + (variation - orthogonal)       # eq. 10
+    if domain.signed_distance(damped) < -OUTSIDE_TOLERANCE:              # second stage
+        damped = domain.closest_boundary_point(damped)
+    return damped, h
+
+
+# Limit models of Pinocchio spherical joints.
+
+class BallLimit:
+    """Ball-and-socket limit (IV.B.3) of one Pinocchio spherical joint (q: quaternion x, y,
+    z, w; dq: local angular velocity, rad): swing domain plus twist interval [min, max]
+    (rad, revolute rule eq. 1-5), or a free twist (None).
+
+    activation: damping thickness q_hat (rad) of the swing zone and of the twist zones
+    (the latter capped like revolute joints)."""
+
+    def __init__(self, joint: str, q_index: int, v_index: int, domain: SwingDomain,
+                 twist=None, activation: float = 0.2):
+        self.joint = joint
+        self.domain = domain
+        self.thickness = float(activation)
+        self.q_slice = slice(q_index, q_index + 4)
+        self.v_index = np.arange(v_index, v_index + 3)
+        self.dof_names = [f"{joint}_swing_x", f"{joint}_swing_y", f"{joint}_twist"]
+        self.twist = None if twist is None else RevoluteLimits(
+            [f"{joint}_twist"], [0], [0], [twist[0]], [twist[1]], activation)
+
+    @classmethod
+    def for_joint(cls, robot, joint: str, *args, **kwargs):
+        """The limit of the robot's spherical joint `joint`; other arguments as __init__."""
+        joint_model = robot.model.joints[robot.joint_id(joint)]
+        if joint_model.shortname() != "JointModelSpherical":
+            raise ValueError(f"joint {joint!r} is not a spherical joint")
+        return cls(joint, joint_model.idx_q, joint_model.idx_v, *args, **kwargs)
+
+    def rotation(self, q) -> np.ndarray:
+        """Joint rotation R (joint frame relative to its placement) at configuration q."""
+        return pin.Quaternion(np.asarray(q[self.q_slice])).normalized().toRotationMatrix()
+
+    def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
+        """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
+        velocity = dq[self.v_index]
+        if (not np.all(free[self.v_index])
+                or np.linalg.norm(velocity) <= NEGLIGIBLE_VARIATION):
+            return _nothing()
+        rotation = self.rotation(q)
+        s, theta = swing_twist(rotation)
+        s_next, theta_next = swing_twist(rotation @ pin.exp3(velocity))
+        swing_target, swing_h = damp_swing(self.domain, self.thickness, s, s_next,
+                                           progressive)
+        twist_target, twist_h = self._twist_target(theta, theta_next, progressive)
+        if swing_target is None and twist_target is None:
+            return _nothing()
+        target = rotation_from_swing_twist(
+            s_next if swing_target is None else swing_target,
+            theta_next if twist_target is None else twist_target)
+        fixed = pin.log3(rotation.T @ target)
+        return LimitDecision(self.v_index.copy(), fixed,
+                             np.array([swing_h, swing_h, twist_h]))
+
+    def _twist_target(self, theta, theta_next, progressive):
+        """Altered next twist (rad) and h by the revolute rule, or (None, 0)."""
+        if self.twist is None:
+            return None, 0.0
+        variation = (theta_next - theta + math.pi) % (2.0 * math.pi) - math.pi
+        decision = self.twist.decide(np.array([theta]), np.array([variation]),
+                                     np.ones(1, dtype=bool), progressive)
+        if not len(decision.index):
+            return None, 0.0
+        return theta + decision.dq[0], float(decision.h[0])
+
+    def keep_inside(self, q, q_next) -> None:
+        """Project q_next's joint rotation (in place) into the limits without moving it
+        further out than q: removes the negligible overshoot the decisions ignored."""
+        s, theta = swing_twist(self.rotation(q))
+        s_next, theta_next = swing_twist(self.rotation(q_next))
+        changed = False
+        allowed = min(0.0, self.domain.signed_distance(s))
+        if self.domain.signed_distance(s_next) < allowed:
+            s_next, changed = self.domain.closest_boundary_point(s_next), True
+        if self.twist is not None:
+            current, following = np.array([theta]), np.array([theta_next])
+            self.twist.keep_inside(current, following)
+            changed = changed or following[0] != theta_next
+            theta_next = following[0]
+        if changed:
+            rotation = rotation_from_swing_twist(s_next, theta_next)
+            q_next[self.q_slice] = pin.Quaternion(rotation).coeffs()
+
+
+class SwingLimit(BallLimit):
+    """Swing joint (2 DoFs) on a Pinocchio spherical joint: the swing is limited by the
+    domain, the twist is either locked at 0 rad (held by the twist rule) or free."""
+
+    def __init__(self, joint: str, q_index: int, v_index: int, domain: SwingDomain,
+                 twist_locked: bool = True, activation: float = 0.2):
+        super().__init__(joint, q_index, v_index, domain,
+                         (0.0, 0.0) if twist_locked else None, activation)
+
+
+def _nothing() -> LimitDecision:
+    return LimitDecision(np.zeros(0, dtype=int), np.zeros(0), np.zeros(0))
+
+
+# Limit files.
+
+JOINT_TYPES = {"swing": SwingLimit, "ball": BallLimit}
+
+
+def _number(value, where: str, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(
+            value) or (positive and value <= 0):
+        raise LimitFileError(f"{where} must be a finite{' positive' if positive else ''} "
+                             f"number, got {value!r}")
+    return float(value)
+
+
+def _domain(entry: dict, where: str) -> SwingDomain:
+    if ("cone" in entry) == ("polygon" in entry):
+        raise LimitFileError(f"{where}: give exactly one of 'cone' or 'polygon'")
+    try:
+        if "cone" in entry:
+            cone = entry["cone"]
+            if not isinstance(cone, dict) or set(cone) != {"a", "b"}:
+                raise LimitFileError(f"{where}.cone must be a mapping {{a, b}} (rad)")
+            return EllipticCone(_number(cone["a"], f"{where}.cone.a", True),
+                                _number(cone["b"], f"{where}.cone.b", True))
+        polygon = entry["polygon"]
+        if not isinstance(polygon, list) or not all(
+                isinstance(vertex, list) and len(vertex) == 3 for vertex in polygon):
+            raise LimitFileError(f"{where}.polygon must be a list of [x, y, z] directions")
+        return SphericalPolygon([[_number(value, f"{where}.polygon[{i}]") for value in vertex]
+                                 for i, vertex in enumerate(polygon)])
+    except ValueError as error:
+        if isinstance(error, LimitFileError):
+            raise
+        field = "cone" if "cone" in entry else "polygon"
+        raise LimitFileError(f"{where}.{field}: {error}") from error
+
+
+def _twist(entry: dict, kind: str, where: str):
+    """BallLimit: (min, max) rad; SwingLimit: locked (True) or free (False)."""
+    value = entry.get("twist", "locked" if kind == "swing" else None)
+    if kind == "swing":
+        if value not in ("locked", "free"):
+            raise LimitFileError(f"{where}.twist of a swing joint must be 'locked' or 'free'")
+        return value == "locked"
+    if not isinstance(value, list) or len(value) != 2:
+        raise LimitFileError(f"{where}.twist must be [min, max] (rad)")
+    low, high = (_number(v, f"{where}.twist") for v in value)
+    if not low < high:
+        raise LimitFileError(f"{where}.twist needs min < max, got [{low}, {high}]")
+    return low, high
+
+
+def parse_limits(document, robot) -> list:
+    """Limit models from a parsed limit file (see load_limit_file)."""
+    if not isinstance(document, dict) or not isinstance(document.get("joints"), dict):
+        raise LimitFileError("a limit file needs a 'joints' mapping")
+    default = _number(document.get("activation", 0.2), "activation", True)
+    models = []
+    for joint, entry in document["joints"].items():
+        where = f"joints.{joint}"
+        if not isinstance(entry, dict):
+            raise LimitFileError(f"{where} must be a mapping")
+        unknown = set(entry) - {"type", "cone", "polygon", "twist", "activation"}
+        if unknown:
+            raise LimitFileError(f"{where}: unknown field(s) {', '.join(sorted(unknown))}")
+        kind = entry.get("type")
+        if kind not in JOINT_TYPES:
+            raise LimitFileError(f"{where}.type must be one of {', '.join(JOINT_TYPES)}")
+        if not robot.model.existJointName(joint):
+            raise LimitFileError(f"{where}: the robot has no joint {joint!r}")
+        activation = _number(entry.get("activation", default), f"{where}.activation", True)
+        domain, twist = _domain(entry, where), _twist(entry, kind, where)
+        try:
+            models.append(JOINT_TYPES[kind].for_joint(robot, joint, domain, twist, activation))
+        except ValueError as error:
+            raise LimitFileError(f"{where}: {error}") from error
+    return models
+
+
+def load_limit_file(path, robot) -> list:
+    """Limit models of a YAML limit file:
+
+        activation: 0.2                     # default q_hat (rad)
+        joints:
+          <spherical joint>:
+            type: ball | swing
+            cone: {a: .., b: ..}            # or polygon: [[x, y, z], ...] (joint frame)
+            twist: [min, max]               # ball (rad); swing: locked (default) | free
+            activation: 0.15                # optional, rad
+    """
+    try:
+        document = yaml.safe_load(Path(path).read_text())
+    except yaml.YAMLError as error:
+        raise LimitFileError(f"{path}: not valid YAML: {error}") from error
+    return parse_limits(document, robot)

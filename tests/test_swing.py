@@ -1,0 +1,443 @@
+"""Swing and ball-and-socket joint limits (Raunhardt and Boulic, IV.B.2-3) and the mannequin.
+
+Geometry of the limit domains against brute-force sampling; the swing/twist decomposition;
+eq. 6-10 (only the component of the swing variation orthogonal to the limit is damped, by
+the cubic h of the normalized depth); the second-stage clamp that lets a joint slide along
+its limit (Fig. 6); limit files; and whole PIK runs on the mannequin where no swing leaves
+its domain and no twist its interval.
+"""
+
+import math
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from stance.limits import cubic_step
+from stance.models import MANNEQUIN_LIMIT_FILE, build_mannequin
+from stance.pik import PIKSolver
+from stance.stack import TaskSpec
+from stance.swing import (BallLimit, EllipticCone, LimitFileError, SphericalPolygon,
+                          SwingLimit, damp_swing, load_limit_file, parse_limits,
+                          rotation_from_swing_twist, swing_direction, swing_from_direction,
+                          swing_rotation, swing_twist)
+
+THICKNESS = 0.2
+SWING_TOLERANCE = math.radians(0.5)
+TWIST_TOLERANCE = 1e-9
+PROPERTY = settings(max_examples=12, deadline=None, derandomize=True, database=None)
+SEEDS = st.integers(0, 2**32 - 1)
+
+
+def direction(angle, azimuth):
+    """Unit direction `angle` rad from z toward azimuth (rad from x)."""
+    return np.array([math.sin(angle) * math.cos(azimuth),
+                     math.sin(angle) * math.sin(azimuth), math.cos(angle)])
+
+
+CONE = EllipticCone(1.0, 0.6)
+# Convex pentagon in the upper hemisphere (its gnomonic image is a convex planar polygon).
+PENTAGON = SphericalPolygon([direction(angle, azimuth) for angle, azimuth in
+                             [(1.1, 0.0), (0.9, 1.3), (0.7, 2.6), (1.0, 3.8), (0.8, 5.0)]])
+DOMAINS = {"cone": CONE, "polygon": PENTAGON}
+
+
+def polygon_boundary(polygon, samples_per_edge=4000) -> np.ndarray:
+    """Dense directions along the great-circle edges."""
+    points = []
+    for start, end in zip(polygon.vertices, np.roll(polygon.vertices, -1, axis=0)):
+        angle = math.acos(np.clip(start @ end, -1.0, 1.0))
+        for t in np.linspace(0.0, 1.0, samples_per_edge):
+            points.append((math.sin((1 - t) * angle) * start + math.sin(t * angle) * end)
+                          / math.sin(angle))
+    return np.array(points)
+
+
+def inside_gnomonic(polygon, unit) -> bool:
+    """Brute-force containment: the gnomonic projection (z > 0) maps great circles to lines."""
+    if unit[2] <= 0:
+        return False
+    planar = polygon.vertices[:, :2] / polygon.vertices[:, 2:]
+    point = unit[:2] / unit[2]
+    edges = np.roll(planar, -1, axis=0) - planar
+    cross = edges[:, 0] * (point[1] - planar[:, 1]) - edges[:, 1] * (point[0] - planar[:, 0])
+    return bool(np.all(cross >= 0) or np.all(cross <= 0))
+
+
+def tangent_and_normal(domain, s):
+    normal = domain.normal_at(s)
+    return np.array([-normal[1], normal[0]]), normal
+
+
+def point_inside_by(domain, depth):
+    """A swing `depth` rad inside the limit (depth < 0: outside): below the boundary point
+    at azimuth 0.7 rad of the cone, or the middle of the polygon's first edge."""
+    if isinstance(domain, EllipticCone):
+        boundary = domain.closest_boundary_point(2.0 * np.array([math.cos(0.7),
+                                                                 math.sin(0.7)]))
+        return boundary - depth * domain.normal_at(boundary)
+    middle = domain.vertices[0] + domain.vertices[1]
+    middle /= np.linalg.norm(middle)
+    inward = domain.inward_normals[0]
+    return swing_from_direction(math.cos(depth) * middle + math.sin(depth) * inward)
+
+
+# Geometry of the domains.
+
+@pytest.mark.parametrize("seed", range(5))
+def test_cone_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 2 * np.pi, 200001)
+    boundary = np.stack([CONE.a * np.cos(t), CONE.b * np.sin(t)], axis=1)
+    for s in rng.uniform(-1.6, 1.6, (40, 2)):
+        distances = np.linalg.norm(boundary - s, axis=1)
+        closest = CONE.closest_boundary_point(s)
+        assert np.linalg.norm(closest - s) == pytest.approx(distances.min(), abs=1e-5)
+        assert (closest[0] / CONE.a) ** 2 + (closest[1] / CONE.b) ** 2 == pytest.approx(1.0)
+        inside = (s[0] / CONE.a) ** 2 + (s[1] / CONE.b) ** 2 <= 1.0
+        assert CONE.contains(s) == inside
+        assert CONE.signed_distance(s) == pytest.approx(
+            distances.min() if inside else -distances.min(), abs=1e-5)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_polygon_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    boundary = polygon_boundary(PENTAGON)
+    for _ in range(40):
+        s = swing_from_direction(direction(rng.uniform(0, 1.4), rng.uniform(0, 2 * np.pi)))
+        unit = swing_direction(s)
+        angles = np.arccos(np.clip(boundary @ unit, -1, 1))
+        inside = inside_gnomonic(PENTAGON, unit)
+        assert PENTAGON.contains(s) == inside
+        assert PENTAGON.signed_distance(s) == pytest.approx(
+            angles.min() if inside else -angles.min(), abs=1e-3)
+        closest = swing_direction(PENTAGON.closest_boundary_point(s))
+        assert math.acos(min(1.0, closest @ unit)) == pytest.approx(angles.min(), abs=1e-3)
+        assert abs(PENTAGON.signed_distance(PENTAGON.closest_boundary_point(s))) < 1e-9
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_normal_is_the_direction_of_steepest_approach(name):
+    """normal_at(s) = -grad signed_distance / |grad| wherever s is off the boundary."""
+    domain, rng, eps = DOMAINS[name], np.random.default_rng(3), 1e-6
+    for s in rng.uniform(-1.0, 1.0, (40, 2)):
+        if abs(domain.signed_distance(s)) < 1e-3:
+            continue
+        gradient = np.array([(domain.signed_distance(s + eps * e)
+                              - domain.signed_distance(s - eps * e)) / (2 * eps)
+                             for e in np.eye(2)])
+        assert domain.normal_at(s) == pytest.approx(-gradient / np.linalg.norm(gradient),
+                                                    abs=1e-4)
+
+
+def test_polygon_that_is_star_shaped_but_not_convex_is_rejected():
+    star = [direction(0.8 if k % 2 == 0 else 0.3, k * np.pi / 4) for k in range(8)]
+    with pytest.raises(ValueError, match="convex"):
+        SphericalPolygon(star)
+
+
+def test_polygon_not_around_the_rest_direction_is_rejected():
+    with pytest.raises(ValueError, match="rest direction"):
+        SphericalPolygon([direction(0.5, 0.0), direction(1.0, 0.3), direction(1.0, -0.3)])
+
+
+def test_polygon_vertex_order_does_not_matter():
+    reversed_pentagon = SphericalPolygon(PENTAGON.vertices[::-1])
+    for s in np.random.default_rng(4).uniform(-1.2, 1.2, (30, 2)):
+        assert reversed_pentagon.signed_distance(s) == pytest.approx(
+            PENTAGON.signed_distance(s))
+
+
+# Swing / twist decomposition.
+
+def test_swing_twist_round_trip():
+    rng = np.random.default_rng(5)
+    for _ in range(500):
+        rotation = pin.exp3(rng.normal(size=3))
+        s, theta = swing_twist(rotation)
+        if np.linalg.norm(s) > np.pi - 1e-3:
+            continue  # the decomposition is singular at the antipode of z
+        assert rotation_from_swing_twist(s, theta) == pytest.approx(rotation, abs=1e-9)
+        assert swing_direction(s) == pytest.approx(rotation[:, 2], abs=1e-12)
+        assert -np.pi <= theta <= np.pi
+
+
+def test_pure_swing_and_pure_twist_are_recovered():
+    s = np.array([0.4, -0.7])
+    assert swing_twist(swing_rotation(s))[0] == pytest.approx(s)
+    assert swing_twist(swing_rotation(s))[1] == pytest.approx(0.0, abs=1e-12)
+    s_twist, theta = swing_twist(pin.exp3(np.array([0.0, 0.0, 0.9])))
+    assert s_twist == pytest.approx(np.zeros(2), abs=1e-12)
+    assert theta == pytest.approx(0.9)
+
+
+# Eq. 6-10 and the second stage.
+
+@pytest.mark.parametrize("name", DOMAINS)
+@pytest.mark.parametrize("depth", [0.02, 0.1, 0.18])
+def test_only_the_orthogonal_component_is_damped_by_the_cubic(name, depth):
+    domain = DOMAINS[name]
+    s = point_inside_by(domain, depth)
+    assert domain.signed_distance(s) == pytest.approx(depth, abs=1e-6)
+    tangent, normal = tangent_and_normal(domain, s)
+    variation = 0.002 * normal + 0.004 * tangent
+    target, h = damp_swing(domain, THICKNESS, s, s + variation, progressive=True)
+    d = (THICKNESS - depth) / THICKNESS
+    assert h == pytest.approx(cubic_step(d), abs=1e-6)
+    moved = target - s
+    assert moved @ normal == pytest.approx((1 - h) * 0.002, abs=1e-9)
+    assert moved @ tangent == pytest.approx(0.004, abs=1e-9)
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_variation_away_from_the_limit_or_outside_the_zone_is_untouched(name):
+    domain = DOMAINS[name]
+    s = point_inside_by(domain, 0.1)
+    tangent, normal = tangent_and_normal(domain, s)
+    assert damp_swing(domain, THICKNESS, s, s - 0.01 * normal + 0.01 * tangent, True)[0] is None
+    deep = point_inside_by(domain, 0.3)
+    assert damp_swing(domain, THICKNESS, deep, deep + 0.01 * normal, True)[0] is None
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_clamping_only_does_not_damp_inside(name):
+    domain = DOMAINS[name]
+    s = point_inside_by(domain, 0.1)
+    assert damp_swing(domain, THICKNESS, s, s + 0.01 * domain.normal_at(s), False)[0] is None
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+@pytest.mark.parametrize("progressive", [True, False])
+def test_state_on_the_limit_heading_outside_slides_along_it(name, progressive):
+    """Fig. 6: the next state is the valid state nearest the candidate, on the limit and
+    moved along it by the parallel part of the variation."""
+    domain = DOMAINS[name]
+    s = point_inside_by(domain, 0.0)
+    tangent, normal = tangent_and_normal(domain, s)
+    target, h = damp_swing(domain, THICKNESS, s, s + 0.05 * normal + 0.05 * tangent,
+                           progressive)
+    assert h == 1.0
+    assert abs(domain.signed_distance(target)) < 1e-9
+    assert (target - s) @ tangent > 0.03
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_start_outside_moves_back_onto_the_limit(name):
+    domain = DOMAINS[name]
+    s = point_inside_by(domain, -0.2)
+    target, h = damp_swing(domain, THICKNESS, s, s + 0.01 * domain.normal_at(s), True)
+    assert h == 1.0 and abs(domain.signed_distance(target)) < 1e-9
+
+
+# Limit models on the mannequin.
+
+@pytest.fixture(scope="module")
+def mannequin():
+    return build_mannequin()
+
+
+@pytest.fixture(scope="module")
+def limit_models(mannequin):
+    return load_limit_file(MANNEQUIN_LIMIT_FILE, mannequin)
+
+
+def joint_q(robot, joint):
+    joint_model = robot.model.joints[robot.joint_id(joint)]
+    return slice(joint_model.idx_q, joint_model.idx_q + 4), joint_model.idx_v
+
+
+def set_swing_twist(robot, q, joint, s, theta):
+    q[joint_q(robot, joint)[0]] = pin.Quaternion(rotation_from_swing_twist(s, theta)).coeffs()
+
+
+def test_ball_decision_fixes_the_joint_on_the_damped_target(mannequin):
+    model = BallLimit.for_joint(mannequin, "left_hip", CONE, twist=(-0.5, 0.5))
+    q = mannequin.initial_configuration("standing")
+    s = point_inside_by(CONE, 0.05)
+    set_swing_twist(mannequin, q, "left_hip", s, 0.45)
+    tangent, normal = tangent_and_normal(CONE, s)
+    _, v = joint_q(mannequin, "left_hip")
+    rotation = rotation_from_swing_twist(s, 0.45)
+    candidate = rotation_from_swing_twist(s + 0.003 * normal + 0.002 * tangent, 0.47)
+    dq = np.zeros(mannequin.model.nv)
+    dq[v:v + 3] = pin.log3(rotation.T @ candidate)
+    decision = model.decide(q, dq, np.ones(mannequin.model.nv, dtype=bool), True)
+    assert list(decision.index) == [v, v + 1, v + 2]
+    reached = swing_twist(rotation @ pin.exp3(decision.dq))
+    swing_h, twist_h = decision.h[0], decision.h[2]
+    assert swing_h == pytest.approx(cubic_step((THICKNESS - 0.05) / THICKNESS), abs=1e-6)
+    assert twist_h == pytest.approx(cubic_step((0.45 - 0.3) / 0.2), abs=1e-6)  # zone 0.3-0.5
+    assert (reached[0] - s) @ normal == pytest.approx((1 - swing_h) * 0.003, abs=1e-6)
+    assert (reached[0] - s) @ tangent == pytest.approx(0.002, abs=1e-6)
+    assert reached[1] - 0.45 == pytest.approx((1 - twist_h) * 0.02, abs=1e-9)
+
+
+def test_swing_limit_locks_the_twist(mannequin):
+    model = SwingLimit.for_joint(mannequin, "left_wrist", CONE, twist_locked=True)
+    q = mannequin.initial_configuration("standing")
+    _, v = joint_q(mannequin, "left_wrist")
+    dq = np.zeros(mannequin.model.nv)
+    dq[v:v + 3] = [0.01, 0.02, 0.1]
+    decision = model.decide(q, dq, np.ones(mannequin.model.nv, dtype=bool), True)
+    reached = swing_twist(np.eye(3) @ pin.exp3(decision.dq))
+    assert reached[1] == pytest.approx(0.0, abs=1e-12)
+    assert model.dof_names == ["left_wrist_swing_x", "left_wrist_swing_y", "left_wrist_twist"]
+
+
+def test_mannequin_is_a_standing_adult(mannequin, limit_models):
+    robot = mannequin
+    q = robot.initial_configuration("standing")
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, q)
+    height = data.oMf[robot.frame_id("head")].translation[2]
+    assert 1.6 < height < 1.8
+    soles = [data.oMf[robot.frame_id(f"{side}_{part}")].translation
+             for side in ("left", "right") for part in ("sole", "toe", "heel")]
+    assert np.allclose([sole[2] for sole in soles], 0.0, atol=1e-9)
+    com = pin.centerOfMass(robot.model, data, q)
+    heels_x = data.oMf[robot.frame_id("left_heel")].translation[0]
+    toes_x = data.oMf[robot.frame_id("left_toe")].translation[0]
+    assert heels_x < com[0] < toes_x and abs(com[1]) < 1e-9 and 0.9 < com[2] < 1.1
+    assert set(robot.limited_joint_names) == {f"{side}_{joint}" for side in ("left", "right")
+                                              for joint in ("elbow", "knee", "knee_twist")}
+    assert all(swing_excess(model, q) == 0.0 for model in limit_models)
+
+
+# Limit files.
+
+@pytest.mark.parametrize("entry, field", [
+    ({"type": "ball", "twist": [-1, 1]}, "cone"),
+    ({"type": "ball", "cone": {"a": 0.5}, "twist": [-1, 1]}, "cone"),
+    ({"type": "ball", "cone": {"a": -0.5, "b": 0.5}, "twist": [-1, 1]}, "cone.a"),
+    ({"type": "ball", "cone": {"a": 0.5, "b": 0.5}}, "twist"),
+    ({"type": "ball", "cone": {"a": 0.5, "b": 0.5}, "twist": [1, -1]}, "twist"),
+    ({"type": "swing", "cone": {"a": 0.5, "b": 0.5}, "twist": "loose"}, "twist"),
+    ({"type": "hinge", "cone": {"a": 0.5, "b": 0.5}}, "type"),
+    ({"type": "swing", "polygon": [[1, 0, 0], [0, 1, 0]]}, "polygon"),
+    ({"type": "swing", "cone": {"a": 0.5, "b": 0.5}, "activation": 0}, "activation"),
+    ({"type": "swing", "cone": {"a": 0.5, "b": 0.5}, "colour": "red"}, "colour"),
+])
+def test_limit_file_errors_name_the_field(mannequin, entry, field):
+    with pytest.raises(LimitFileError, match=f"joints.left_hip.*{field}"):
+        parse_limits({"joints": {"left_hip": entry}}, mannequin)
+
+
+@pytest.mark.parametrize("joint, message", [("nose", "no joint"),
+                                            ("left_elbow", "not a spherical joint")])
+def test_limit_file_rejects_joints_that_cannot_hold_a_swing_limit(mannequin, joint, message):
+    with pytest.raises(LimitFileError, match=message):
+        parse_limits({"joints": {joint: {"type": "swing", "cone": {"a": 0.5, "b": 0.5}}}},
+                     mannequin)
+
+
+# Whole runs: feet > CoM > right hand and right toes > posture.
+
+def swing_excess(model, q) -> float:
+    """How far (rad) the joint's swing lies outside its domain (0 inside)."""
+    s, _ = swing_twist(model.rotation(q))
+    return max(0.0, -model.domain.signed_distance(s))
+
+
+def twist_excess(model, q) -> float:
+    if model.twist is None:
+        return 0.0
+    theta = swing_twist(model.rotation(q))[1]
+    return max(0.0, theta - model.twist.upper[0], model.twist.lower[0] - theta)
+
+
+def random_start(robot, limit_models, rng) -> np.ndarray:
+    """Standing, with every swing/ball joint at a random state inside its limits."""
+    q = robot.initial_configuration("standing")
+    for model in limit_models:
+        while True:
+            s = rng.uniform(-1.5, 1.5, 2)
+            if model.domain.contains(s):
+                break
+        theta = 0.0 if model.twist is None else rng.uniform(model.twist.lower[0],
+                                                            model.twist.upper[0])
+        set_swing_twist(robot, q, model.joint, s, theta)
+    return q
+
+
+def run(robot, limit_models, start, seed, reachable, strategy="progressive", steps=40):
+    """Configurations after each IK step toward random right hand and toe targets, moved
+    by < 0.3 m (reachable) or 1-3 m (unreachable)."""
+    rng = np.random.default_rng(seed)
+    solver = PIKSolver(robot, strategy=strategy, limit_models=limit_models)
+    solver.set_stack([
+        TaskSpec("left_sole", "pose", frame="left_sole", priority=0, gain=0.5),
+        TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
+        TaskSpec("right_hand", "position", frame="right_hand", priority=2, gain=0.5),
+        TaskSpec("right_toe", "position", frame="right_toe", priority=2, gain=0.5),
+        TaskSpec("posture", "posture", priority=3, gain=0.02)], start)
+    for name in ("right_hand", "right_toe"):
+        task = solver.task(name)
+        if reachable:
+            offset = rng.uniform(-0.3, 0.3, 3)
+        else:
+            heading = rng.normal(size=3)
+            offset = rng.uniform(1.0, 3.0) * heading / np.linalg.norm(heading)
+        target = task.target
+        target.translation += offset
+        task.set_target(target)
+    q = start
+    for _ in range(steps):
+        q = solver.step(q).q
+        yield q
+
+
+@pytest.mark.parametrize("strategy", ["clamping", "progressive"])
+@PROPERTY
+@given(seed=SEEDS, reachable=st.booleans())
+def test_no_swing_or_twist_ever_leaves_its_limits(mannequin, limit_models, strategy, seed,
+                                                   reachable):
+    start = random_start(mannequin, limit_models, np.random.default_rng(seed))
+    for q in run(mannequin, limit_models, start, seed, reachable, strategy):
+        for model in limit_models:
+            assert swing_excess(model, q) <= SWING_TOLERANCE, model.joint
+            assert twist_excess(model, q) <= TWIST_TOLERANCE, model.joint
+
+
+def excesses(limit_models, q) -> np.ndarray:
+    """Swing and twist excess (rad) of every model."""
+    return np.array([[swing_excess(model, q), twist_excess(model, q)]
+                     for model in limit_models])
+
+
+@PROPERTY
+@given(seed=SEEDS, reachable=st.booleans(), outside=st.integers(1, 3))
+def test_a_joint_started_outside_moves_back_and_never_further_out(
+        mannequin, limit_models, seed, reachable, outside):
+    """Swings pushed 0.05-0.3 rad out of their domain, ball twists 0.05-0.3 rad past a
+    bound: no step takes them further out, and they end back inside."""
+    rng = np.random.default_rng(seed)
+    start = random_start(mannequin, limit_models, rng)
+    for index in rng.choice(len(limit_models), outside, replace=False):
+        model = limit_models[index]
+        s, theta = swing_twist(model.rotation(start))
+        boundary = model.domain.closest_boundary_point(s)
+        s = boundary + rng.uniform(0.05, 0.3) * model.domain.normal_at(boundary)
+        if model.twist is not None and model.twist.upper[0] > model.twist.lower[0]:
+            theta = model.twist.upper[0] + rng.uniform(0.05, 0.3)
+        set_swing_twist(mannequin, start, model.joint, s, theta)
+    excess = excesses(limit_models, start)
+    assert excess.max() > 0.0
+    for q in run(mannequin, limit_models, start, seed, reachable):
+        next_excess = excesses(limit_models, q)
+        assert np.all(next_excess <= excess + 1e-9)
+        excess = next_excess
+    assert excess[:, 0].max() <= SWING_TOLERANCE
+    assert excess[:, 1].max() <= TWIST_TOLERANCE
+
+
+def test_strategy_none_lets_swings_leave_their_limits(mannequin, limit_models):
+    """Sanity check of the harness: without a limit strategy the same runs leave limits."""
+    start = mannequin.initial_configuration("standing")
+    worst = max(swing_excess(model, q) for q in run(mannequin, limit_models, start, seed=2,
+                                                    reachable=False, strategy="none",
+                                                    steps=100)
+                for model in limit_models)
+    assert worst > 5 * SWING_TOLERANCE
