@@ -39,8 +39,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
 from stance.limits import STRATEGIES
-from stance.pik import DEMO_STACK_FILE
+from stance.pik import demo_stack_file
 from stance.stack import parse_stack_yaml
+from stance.swing import LimitFileError, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
@@ -63,11 +64,16 @@ class PikNode(Node):
         self.robot = Robot.load(get("robot").value)
         self.q = self.robot.initial_configuration(get("initial_configuration").value or None)
         rate = get("rate").value
+        limit_file = get("limits_file").value or self.robot.limit_file
         self.solver = PIKSolver(
             self.robot, strategy=get("strategy").value, damping=get("damping").value,
             activation=get("activation").value,
-            dt=1.0 / rate if get("velocity_limits").value else None)
-        stack_file = get("stack_file").value or str(DEMO_STACK_FILE)
+            dt=1.0 / rate if get("velocity_limits").value else None,
+            limit_models=load_limit_file(limit_file, self.robot) if limit_file else ())
+        stack_file = get("stack_file").value or demo_stack_file(get("robot").value)
+        if stack_file is None:
+            raise StackError(f"no demo stack ships for robot {get('robot').value!r}: "
+                             "set the stack_file parameter")
         with open(stack_file) as stream:
             self.solver.set_stack(parse_stack_yaml(stream.read(), self.robot.model.existFrame),
                                   self.q)
@@ -108,11 +114,13 @@ class PikNode(Node):
             return ParameterDescriptor(description=text, read_only=read_only, **extra)
 
         self.declare_parameter("robot", "talos", describe(
-            "example-robot-data name or URDF path (free-flyer base)"))
+            "example-robot-data name, URDF path (free-flyer base) or mannequin"))
+        self.declare_parameter("limits_file", "", describe(
+            "YAML of swing and ball-and-socket joint limits; empty = the robot's own, if any"))
         self.declare_parameter("initial_configuration", "", describe(
             "named reference configuration (SRDF), default half_sitting or neutral"))
         self.declare_parameter("stack_file", "", describe(
-            "task stack YAML; empty = the Talos demo stack"))
+            "task stack YAML; empty = the robot's demo stack (talos, mannequin)"))
         self.declare_parameter("rate", 500.0, describe(
             "IK steps per second (Hz)",
             floating_point_range=[FloatingPointRange(from_value=1.0, to_value=2000.0)]))
@@ -322,7 +330,7 @@ def main(args=None):
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = PikNode()
-    except (RobotModelError, StackError, OSError, ValueError) as error:
+    except (RobotModelError, StackError, LimitFileError, OSError, ValueError) as error:
         print(f"pik_node: cannot start: {error}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1

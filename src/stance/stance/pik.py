@@ -15,7 +15,7 @@ One IK step from configuration q:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +46,7 @@ class StepResult:
     clamping_iterations: int    # hierarchy solutions evaluated
     solve_time: float           # s
     velocity_scale: float = 1.0  # uniform dq scaling applied for velocity limits
+    binding_constraints: list = field(default_factory=list)  # bounds on dq that bind
 
 
 @dataclass
@@ -179,7 +180,8 @@ class PIKSolver:
         return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors,
                           damping=h[self._dof_v_index], clamped=fixed[self._dof_v_index],
                           clamping_iterations=iterations,
-                          solve_time=time.perf_counter() - start, velocity_scale=scale)
+                          solve_time=time.perf_counter() - start, velocity_scale=scale,
+                          binding_constraints=solution.binding)
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""
@@ -282,7 +284,14 @@ def _append_levels(jacobian, target, offsets, levels):
     return jacobian, target, np.concatenate([offsets, ends]).astype(np.int64)
 
 
-DEMO_STACK_FILE = Path(__file__).parent / "data" / "talos_demo_stack.yaml"
+DATA = Path(__file__).parent / "data"
+DEMO_STACK_FILE = DATA / "talos_demo_stack.yaml"
+
+
+def demo_stack_file(robot_name: str) -> Path | None:
+    """The shipped demo stack of a robot (talos, mannequin), or None."""
+    path = DATA / f"{robot_name}_demo_stack.yaml"
+    return path if path.is_file() else None
 
 
 def default_stack_specs() -> list:

@@ -26,12 +26,15 @@ class Robot:
         urdf: the URDF text the model was built from (published as robot_description).
         floating_base: True when the first joint is a free flyer (never limited).
         reference_configurations: named configurations, e.g. ``half_sitting`` from the SRDF.
+        limit_file: YAML of swing and ball-and-socket joint limits shipped with the model
+            (stance.swing.load_limit_file), or None.
     """
 
     model: pin.Model
     urdf: str
     floating_base: bool
     reference_configurations: dict = field(default_factory=dict)
+    limit_file: str | None = None
 
     def __post_init__(self):
         self.data = self.model.createData()
@@ -103,15 +106,23 @@ class Robot:
 
     @classmethod
     def load(cls, spec: str) -> Robot:
-        """`spec` is an example-robot-data name (e.g. talos) or a path to a URDF file."""
+        """`spec` is `mannequin` (spherical joints, built in code), an example-robot-data
+        name (e.g. talos) or a path to a URDF file."""
+        if spec == "mannequin":
+            from .models.mannequin import MANNEQUIN_LIMIT_FILE, build_mannequin
+            robot = build_mannequin()
+            robot.limit_file = str(MANNEQUIN_LIMIT_FILE)
+            return robot
         if spec.endswith(".urdf") or os.path.sep in spec:
             return cls.from_urdf(spec)
         return cls.from_example_robot_data(spec)
 
     def initial_configuration(self, name: str | None = None) -> np.ndarray:
-        """A named reference configuration; default half_sitting if present, else neutral."""
+        """A named reference configuration; default the first of half_sitting and standing
+        the model has, else neutral."""
         if name is None:
-            name = "half_sitting" if "half_sitting" in self.reference_configurations else "neutral"
+            name = next((known for known in ("half_sitting", "standing")
+                         if known in self.reference_configurations), "neutral")
         if name == "neutral":
             return pin.neutral(self.model)
         if name not in self.reference_configurations:
