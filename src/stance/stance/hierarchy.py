@@ -18,7 +18,7 @@ call overheads, not arithmetic, would otherwise dominate.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
@@ -36,6 +36,7 @@ class Level:
 class HierarchySolution:
     dq: np.ndarray                # joint variation (nv), rad or m
     step_residuals: np.ndarray    # |J dq - target| per level, task units
+    binding: list = field(default_factory=list)  # binding bounds, e.g. "<joint> upper"
 
 
 class DampedHierarchy:

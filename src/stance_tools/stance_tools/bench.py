@@ -1,7 +1,10 @@
 """`stance bench`: benchmarks, one sub-benchmark per name (all of them when none is named).
 
-- pik: one library IK step on Talos, PIKSolver (strategies none / clamping / progressive)
-  against Pink's solve_ik on every available QP backend, same robot, stack and targets.
+- pik: one library IK step on Talos, PIKSolver (strategies none / clamping / progressive,
+  and progressive on the QP hierarchy) against Pink's solve_ik on every available QP
+  backend, same robot, stack and targets.
+- levels: cost of a step as priority levels are added, SVD and QP hierarchies side by side
+  (Talos, 1 to 4 levels; Panda arm, 2 levels).
 - node: pik_node's loop rate and latency over DDS (stance_tools.bench_node).
 
 A sub-benchmark is registered in BENCHMARKS by its module and the names of two functions,
@@ -27,7 +30,9 @@ import numpy as np  # noqa: E402
 # name -> (module, add-arguments function, run function, help)
 BENCHMARKS = {
     "pik": (__name__, "add_pik_arguments", "run_pik",
-            "library step: PIKSolver (none/clamping/progressive) vs Pink solve_ik"),
+            "library step: PIKSolver (none/clamping/progressive, SVD and QP) vs Pink"),
+    "levels": (__name__, "add_levels_arguments", "run_levels",
+               "step cost per added priority level, SVD vs QP hierarchy (Talos, Panda)"),
     "node": ("stance_tools.bench_node", "add_node_arguments", "run_node",
              "pik_node over DDS: loop rate at 500 Hz, target-to-joint_states latency"),
 }
@@ -93,16 +98,18 @@ class Record:
 
 
 class StanceContender:
-    """PIKSolver.step with one limit strategy."""
+    """PIKSolver.step with one limit strategy, on the SVD hierarchy or (qp) QPHierarchy."""
 
-    def __init__(self, robot, strategy, specs, targets, start, dt):
+    def __init__(self, robot, strategy, specs, targets, start, dt, qp=False, name=None):
         from stance.pik import PIKSolver
+        from stance.qp_hierarchy import QPHierarchy
 
-        self.name = f"stance {strategy}"
-        self.solver = PIKSolver(robot, strategy=strategy, dt=dt)
+        self.name = name or f"stance {strategy}{' qp' if qp else ''}"
+        hierarchy = QPHierarchy.for_robot(robot, dt=dt) if qp else None
+        self.solver = PIKSolver(robot, strategy=strategy, dt=dt, hierarchy=hierarchy)
         self.solver.set_stack(specs, start)
-        for name, target in targets.items():
-            self.solver.task(name).target = target
+        for spec in specs:
+            self.solver.task(spec.name).target = targets[spec.name]
 
     def reset(self, q) -> None:
         """Stateless between steps: nothing to do."""
@@ -163,14 +170,16 @@ def bench_start(robot) -> np.ndarray:
     return q
 
 
-def bench_targets(robot, specs, start, offset) -> dict:
-    """Targets held at the start, the right hand moved by `offset` (m, world)."""
+def bench_targets(robot, specs, start, offsets) -> dict:
+    """Targets held at the start, pose tasks named in `offsets` moved by their offset (m,
+    world)."""
     from stance.pik import PIKSolver
 
     solver = PIKSolver(robot)
     solver.set_stack(specs, start)
     targets = {name: task.target for name, task in solver.tasks.items()}
-    targets["right_hand"].translation += np.asarray(offset, dtype=float)
+    for name, offset in offsets.items():
+        targets[name].translation += np.asarray(offset, dtype=float)
     return targets
 
 
@@ -212,17 +221,15 @@ def figures(records, evaluator) -> dict:
     definitions, m or rad), worst limit excess (rad) and failure if any."""
     result = {}
     for name, record in records.items():
-        times = np.array(record.times_ns) / 1e3
         result[name] = {
-            "median_us": float(np.median(times)) if len(times) else None,
-            "p99_us": float(np.percentile(times, 99)) if len(times) else None,
+            **timing_us(record),
             "mean_clamping_iterations": (float(np.mean(record.iterations))
                                          if name.startswith("stance") and record.iterations
                                          else None),
             "final_task_errors": (evaluator.step(record.q).task_errors
                                   if record.q is not None else None),
             "max_limit_excess": record.max_limit_excess,
-            "timed_steps": len(times),
+            "timed_steps": len(record.times_ns),
             "failed_at_step": record.failed_at,
             "failure": record.failure or None,
         }
@@ -231,6 +238,14 @@ def figures(records, evaluator) -> dict:
         pink_median = entry["median_us"] if name.startswith("pink") else None
         entry["stance_over_pink_median"] = reference / pink_median if pink_median else None
     return result
+
+
+def timing_us(record) -> dict:
+    """Median and 99th percentile of a record's step times (us), None if it has none."""
+    times = np.array(record.times_ns) / 1e3
+    if not len(times):
+        return {"median_us": None, "p99_us": None}
+    return {"median_us": float(np.median(times)), "p99_us": float(np.percentile(times, 99))}
 
 
 def start_note(robot, specs, targets, backends, dt) -> str:
@@ -255,23 +270,23 @@ def start_note(robot, specs, targets, backends, dt) -> str:
 
 def print_table(result, errors_order) -> None:
     task_columns = "".join(f"{name:>12}" for name in errors_order)
-    print(f"{'contender':<20}{'median us':>10}{'p99 us':>10}{'iters':>7}{'excess rad':>12}"
+    print(f"{'contender':<24}{'median us':>10}{'p99 us':>10}{'iters':>7}{'excess rad':>12}"
           f"{task_columns}{'stance/pink':>13}")
     for name, entry in result.items():
         if entry["median_us"] is None:
-            print(f"{name:<20} failed at timed step {entry['failed_at_step']}: "
+            print(f"{name:<24} failed at timed step {entry['failed_at_step']}: "
                   f"{entry['failure']}")
             continue
         iterations = entry["mean_clamping_iterations"]
         errors = entry["final_task_errors"]
         ratio = entry["stance_over_pink_median"]
-        print(f"{name:<20}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
+        print(f"{name:<24}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
               f"{'-' if iterations is None else f'{iterations:.2f}':>7}"
               f"{entry['max_limit_excess']:>12.2e}"
               + "".join(f"{errors[task]:>12.2e}" for task in errors_order)
               + f"{'-' if ratio is None else f'{ratio:.2f}':>13}")
         if entry["failed_at_step"] is not None:
-            print(f"{'':<20} failed at timed step {entry['failed_at_step']}: "
+            print(f"{'':<24} failed at timed step {entry['failed_at_step']}: "
                   f"{entry['failure']}")
 
 
@@ -285,7 +300,7 @@ def run_pik(args) -> int:
     robot = Robot.from_example_robot_data("talos")
     specs = default_stack_specs()
     start = bench_start(robot)
-    targets = bench_targets(robot, specs, start, args.offset)
+    targets = bench_targets(robot, specs, start, {"right_hand": args.offset})
     backends = [name for name in args.backends if name in qpsolvers.available_solvers]
     skipped = sorted(set(args.backends) - set(backends))
     evaluator = PIKSolver(robot)
@@ -296,6 +311,8 @@ def run_pik(args) -> int:
     with threadpool_limits(limits=1):
         contenders = [StanceContender(robot, strategy, specs, targets, start, args.dt)
                       for strategy in STRATEGIES]
+        contenders.insert(1, StanceContender(robot, "progressive", specs, targets, start,
+                                             args.dt, qp=True))
         contenders += [PinkContender(robot, backend, specs, targets, start, args.dt)
                        for backend in backends]
         note = start_note(robot, specs, targets, backends, args.dt)
@@ -319,4 +336,121 @@ def run_pik(args) -> int:
             json.dump({"robot": "talos", "steps": args.steps, "warmup": args.warmup,
                        "dt": args.dt, "right_hand_offset": list(args.offset),
                        "note": note, "contenders": result}, output, indent=2)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------
+# levels: step cost as priority levels are added, SVD vs QP hierarchy
+# ---------------------------------------------------------------------------------------
+
+TALOS_LEVEL_STACK = """
+- {name: left_foot, kind: pose, frame: left_sole_link, priority: 0, gain: 0.5}
+- {name: right_foot, kind: pose, frame: right_sole_link, priority: 0, gain: 0.5}
+- {name: com, kind: com, priority: 1, axes: [x, y], gain: 0.2}
+- {name: left_hand, kind: pose, frame: gripper_left_base_link, priority: 2, gain: 0.1}
+- {name: right_hand, kind: pose, frame: gripper_right_base_link, priority: 2, gain: 0.1}
+- {name: posture, kind: posture, priority: 3, gain: 0.02}
+"""
+PANDA_STACK = """
+- {name: hand, kind: pose, frame: panda_hand, priority: 0, gain: 0.1}
+- {name: posture, kind: posture, priority: 1, gain: 0.02}
+"""
+HIERARCHIES = {"svd": False, "qp": True}   # contender label -> PIKSolver on QPHierarchy
+
+
+def add_levels_arguments(parser) -> None:
+    parser.add_argument("--steps", type=int, default=2000, help="timed steps per contender")
+    parser.add_argument("--warmup", type=int, default=200, help="untimed steps first")
+    parser.add_argument("--dt", type=float, default=0.002,
+                        help="step period (s): velocity limits, bounds of the QP hierarchy")
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+
+
+def level_contenders(robot, stack_yaml, start, offsets, dt, level_counts) -> list:
+    """Progressive-clamping contenders "<hierarchy> <n> levels" on the stack's first n
+    priority levels, for each hierarchy and n in level_counts."""
+    from stance.stack import parse_stack_yaml
+
+    specs = parse_stack_yaml(stack_yaml)
+    targets = bench_targets(robot, specs, start, offsets)
+    return [StanceContender(robot, "progressive", [spec for spec in specs
+                                                   if spec.priority < count],
+                            targets, start, dt, qp=qp, name=f"{label} {count} levels")
+            for count in level_counts for label, qp in HIERARCHIES.items()]
+
+
+def level_figures(records, contenders, steps) -> dict:
+    """Per contender: timing (us), mean clamping iterations, worst limit excess (rad), the
+    median ratio of n levels over n - 1 levels of the same hierarchy, and for the QP
+    hierarchy its counters per step over all `steps` (warm-up included): levels that needed
+    a QP, ProxSuite cold starts, QP solutions the polish could not certify."""
+    result = {}
+    for contender in contenders:
+        record = records[contender.name]
+        label, count = contender.name.split()[:2]
+        previous = result.get(f"{label} {int(count) - 1} levels")
+        hierarchy = contender.solver.hierarchy
+        entry = {**timing_us(record),
+                 "mean_clamping_iterations": float(np.mean(record.iterations)),
+                 "max_limit_excess": record.max_limit_excess,
+                 **{f"{counter}_per_step": (getattr(hierarchy, counter) / steps
+                                            if hasattr(hierarchy, counter) else None)
+                    for counter in ("qp_solves", "cold_starts", "unpolished")}}
+        entry["over_one_level_less"] = (entry["median_us"] / previous["median_us"]
+                                        if previous else None)
+        result[contender.name] = entry
+    return result
+
+
+def print_level_table(title, result) -> None:
+    print(title)
+    counters = ("qp_solves_per_step", "cold_starts_per_step", "unpolished_per_step")
+    print(f"{'contender':<16}{'median us':>10}{'p99 us':>10}{'iters':>7}{'excess rad':>12}"
+          f"{'x previous':>12}{'QPs':>7}{'cold':>7}{'unpol':>7}")
+    for name, entry in result.items():
+        ratio = entry["over_one_level_less"]
+        print(f"{name:<16}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
+              f"{entry['mean_clamping_iterations']:>7.2f}{entry['max_limit_excess']:>12.2e}"
+              f"{'-' if ratio is None else f'{ratio:.2f}':>12}"
+              + "".join(f"{'-' if entry[key] is None else f'{entry[key]:.2f}':>7}"
+                        for key in counters))
+
+
+def run_levels(args) -> int:
+    from threadpoolctl import threadpool_limits
+
+    from stance.robot import Robot
+
+    talos = Robot.from_example_robot_data("talos")
+    panda = Robot.from_example_robot_data("panda")
+    talos_start, panda_start = bench_start(talos), panda.initial_configuration("default")
+    hand_offsets = {"left_hand": (0.25, 0.2, 0.2), "right_hand": (0.25, -0.2, 0.2)}
+    with threadpool_limits(limits=1):
+        talos_contenders = level_contenders(talos, TALOS_LEVEL_STACK, talos_start,
+                                            hand_offsets, args.dt, (1, 2, 3, 4))
+        panda_contenders = level_contenders(panda, PANDA_STACK, panda_start,
+                                            {"hand": (0.2, 0.2, -0.2)}, args.dt, (2,))
+        results = {}
+        for robot, start, contenders, key in (
+                (talos, talos_start, talos_contenders, "talos"),
+                (panda, panda_start, panda_contenders, "panda")):
+            race(contenders, robot, start, args.warmup)
+            records = race(contenders, robot, start, args.steps)
+            results[key] = level_figures(records, contenders, args.warmup + args.steps)
+
+    print(f"stance bench levels: progressive clamping, dt {args.dt} s (velocity bounds), "
+          f"{args.steps} timed steps after {args.warmup} warm-up, one BLAS thread; svd = "
+          f"DampedHierarchy, qp = QPHierarchy (ProxSuite)")
+    print_level_table(f"Talos (nv {talos.model.nv}): feet (12) > CoM xy (2) > both hands (12)"
+                      f" > posture, hands moved {hand_offsets} m", results["talos"])
+    print_level_table(f"Panda (nv {panda.model.nv}, fixed base): hand pose > posture, hand "
+                      f"moved (0.2, 0.2, -0.2) m", results["panda"])
+    print("x previous: median over the same hierarchy's median with one level less; iters: "
+          "mean hierarchy solutions per step; excess: worst limit violation over the run; "
+          "QPs, cold, unpol: per step (warm-up included), levels that needed a ProxSuite QP, "
+          "its cold starts, its solutions the polish could not certify")
+    if args.json:
+        with open(args.json, "w") as output:
+            json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt,
+                       "hand_offsets": hand_offsets, **results}, output, indent=2)
     return 0

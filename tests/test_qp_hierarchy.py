@@ -1,0 +1,248 @@
+"""QPHierarchy: strict priorities under bounds on dq, on random levels and on Talos.
+
+Without a binding bound it must be DampedHierarchy; with bounds it must keep every higher
+level's residual, respect the bounds, name the binding ones, and never fail or depend on
+its warm start.
+"""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import lsq_linear
+
+from stance.hierarchy import DampedHierarchy, Level
+from stance.pik import PIKSolver, default_stack_specs
+from stance.qp_hierarchy import QPHierarchy, robot_dof_names
+from stance.robot import Robot
+
+DAMPING = 1e-3
+AGREEMENT = 1e-7          # rad: QPHierarchy vs DampedHierarchy without binding bounds
+PRIORITY_TOLERANCE = 1e-8
+BOUND_TOLERANCE = 1e-9    # rad or m
+LOOSE_BOUND = 1e6         # never reached by a damped step of the random problems
+PROPERTY = settings(max_examples=100, deadline=None, derandomize=True, database=None)
+
+
+@st.composite
+def bounded_problems(draw):
+    """(levels, nv, fixed_index, fixed_dq, (lower, upper)): random levels of random rank,
+    some fixed joints, bounds of random width around 0 (some one-sided or absent)."""
+    nv = draw(st.integers(2, 12))
+    shapes = draw(st.lists(
+        st.integers(1, 8).flatmap(lambda rows: st.tuples(st.just(rows),
+                                                         st.integers(0, min(rows, nv)))),
+        min_size=1, max_size=4))
+    fixed = draw(st.lists(st.booleans(), min_size=nv, max_size=nv))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    levels = [Level(rng.normal(size=(rows, rank)) @ rng.normal(size=(rank, nv)),
+                    rng.normal(size=rows))
+              for rows, rank in shapes]
+    fixed_index = np.flatnonzero(fixed)
+    width = 10.0 ** rng.uniform(-3, 0, size=(2, nv))
+    lower, upper = -width[0], width[1]
+    lower[rng.random(nv) < 0.2] = -np.inf
+    upper[rng.random(nv) < 0.2] = np.inf
+    return levels, nv, fixed_index, rng.normal(size=len(fixed_index)), (lower, upper)
+
+
+def residual(level: Level, dq: np.ndarray) -> float:
+    return float(np.linalg.norm(level.jacobian @ dq - level.target))
+
+
+def free_mask(nv, fixed_index) -> np.ndarray:
+    free = np.ones(nv, dtype=bool)
+    free[fixed_index] = False
+    return free
+
+
+@PROPERTY
+@given(bounded_problems())
+def test_without_binding_bounds_it_is_the_damped_hierarchy(problem):
+    levels, nv, fixed_index, fixed_dq, _ = problem
+    loose = (np.full(nv, -LOOSE_BOUND), np.full(nv, LOOSE_BOUND))
+    expected = DampedHierarchy(damping=DAMPING).solve(levels, nv, fixed_index, fixed_dq)
+    solver = QPHierarchy(damping=DAMPING)
+    solution = solver.solve(levels, nv, fixed_index, fixed_dq, bounds=loose)
+    np.testing.assert_allclose(solution.dq, expected.dq, rtol=0, atol=AGREEMENT)
+    np.testing.assert_allclose(solution.step_residuals, expected.step_residuals,
+                               rtol=0, atol=AGREEMENT)
+    assert solution.binding == [] and solver.qp_solves == 0
+
+
+@PROPERTY
+@given(bounded_problems())
+def test_first_level_is_the_bounded_damped_least_squares(problem):
+    """Level 0 alone: min |J dq - t|^2 + lambda^2 |dq|^2 within the bounds, checked
+    against scipy's bounded-variable least squares on the free DoFs."""
+    levels, nv, fixed_index, fixed_dq, (lower, upper) = problem
+    free = free_mask(nv, fixed_index)
+    if not free.any():
+        return
+    level = levels[0]
+    start = np.zeros(nv)
+    start[fixed_index] = fixed_dq
+    stacked = np.vstack([level.jacobian[:, free], DAMPING * np.eye(free.sum())])
+    wanted = np.concatenate([level.target - level.jacobian @ start, np.zeros(free.sum())])
+    reference = lsq_linear(stacked, wanted, bounds=(lower[free], upper[free]),
+                           method="bvls", tol=1e-14).x
+    solution = QPHierarchy(damping=DAMPING).solve([level], nv, fixed_index, fixed_dq,
+                                                  bounds=(lower, upper))
+    np.testing.assert_allclose(solution.dq[free], reference, rtol=0, atol=1e-7)
+
+
+@PROPERTY
+@given(bounded_problems())
+def test_lower_levels_keep_higher_levels_optimum_under_bounds(problem):
+    """Level i's residual at the full solution equals its residual solving levels 0..i."""
+    levels, nv, fixed_index, fixed_dq, bounds = problem
+    solver = QPHierarchy(damping=DAMPING)
+    full = solver.solve(levels, nv, fixed_index, fixed_dq, bounds=bounds)
+    for index, level in enumerate(levels):
+        prefix = solver.solve(levels[:index + 1], nv, fixed_index, fixed_dq, bounds=bounds)
+        assert abs(residual(level, full.dq) - residual(level, prefix.dq)) < PRIORITY_TOLERANCE
+        assert abs(full.step_residuals[index] - prefix.step_residuals[index]) \
+            < PRIORITY_TOLERANCE
+
+
+@PROPERTY
+@given(bounded_problems())
+def test_bounds_and_fixed_joints_are_respected(problem):
+    levels, nv, fixed_index, fixed_dq, (lower, upper) = problem
+    solution = QPHierarchy(damping=DAMPING).solve(levels, nv, fixed_index, fixed_dq,
+                                                  bounds=(lower, upper))
+    free = free_mask(nv, fixed_index)
+    assert np.all(solution.dq[free] >= lower[free] - BOUND_TOLERANCE)
+    assert np.all(solution.dq[free] <= upper[free] + BOUND_TOLERANCE)
+    assert np.array_equal(solution.dq[fixed_index], fixed_dq)
+    assert np.all(np.isfinite(solution.step_residuals))
+
+
+@PROPERTY
+@given(bounded_problems())
+def test_same_input_same_output(problem):
+    """Two fresh solvers agree bit for bit; one solver called again (warm-started QPs)
+    agrees bit for bit too, as the polished QP solutions do not depend on the warm start."""
+    levels, nv, fixed_index, fixed_dq, bounds = problem
+    first, second = QPHierarchy(damping=DAMPING), QPHierarchy(damping=DAMPING)
+    solutions = [first.solve(levels, nv, fixed_index, fixed_dq, bounds=bounds),
+                 second.solve(levels, nv, fixed_index, fixed_dq, bounds=bounds),
+                 first.solve(levels, nv, fixed_index, fixed_dq, bounds=bounds)]
+    for solution in solutions[1:]:
+        assert np.array_equal(solution.dq, solutions[0].dq)
+        assert np.array_equal(solution.step_residuals, solutions[0].step_residuals)
+        assert solution.binding == solutions[0].binding
+
+
+def test_contradictory_levels_are_met_in_least_squares_within_bounds():
+    """Level 0 wants dq_a = 1, level 1 wants dq_a = -1 and dq_b = 1; bounds +-0.1."""
+    names = ["a", "b", "c"]
+    levels = [Level(np.array([[1.0, 0.0, 0.0]]), np.array([1.0])),
+              Level(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), np.array([-1.0, 1.0]))]
+    bounds = (np.full(3, -0.1), np.full(3, 0.1))
+    solution = QPHierarchy(damping=DAMPING, dof_names=names).solve(levels, 3, bounds=bounds)
+    np.testing.assert_allclose(solution.dq, [0.1, 0.1, 0.0], atol=BOUND_TOLERANCE)
+    np.testing.assert_allclose(solution.step_residuals, [0.9, np.hypot(1.1, 0.9)], atol=1e-9)
+    assert solution.binding == ["a upper", "b upper"]
+
+
+@pytest.mark.parametrize("jacobian", [
+    np.zeros((3, 4)),
+    np.array([[1.0, 2.0, 0.0, 0.0], [1.0, 2.0, 0.0, 0.0], [1.0, 2.0, 0.0, 0.0]]),
+    np.array([[1e-14, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1e3]]),
+], ids=["zero", "duplicate_rows", "badly_scaled"])
+def test_singular_stack_returns_a_bounded_solution(jacobian):
+    levels = [Level(jacobian, np.array([1.0, -1.0, 2.0])),
+              Level(jacobian[::-1].copy(), np.array([5.0, 5.0, 5.0])),
+              Level(np.eye(4), np.full(4, 3.0))]
+    bounds = (np.full(4, -0.5), np.full(4, 0.2))
+    solution = QPHierarchy(damping=DAMPING).solve(levels, 4, [1], [0.0], bounds=bounds)
+    assert np.all(np.isfinite(solution.dq)) and np.all(np.isfinite(solution.step_residuals))
+    assert np.all(solution.dq >= bounds[0] - BOUND_TOLERANCE)
+    assert np.all(solution.dq <= bounds[1] + BOUND_TOLERANCE)
+
+
+# Talos: the demo stack through PIKSolver, progressive clamping.
+
+@pytest.fixture(scope="module")
+def talos():
+    return Robot.from_example_robot_data("talos")
+
+
+def talos_solver(robot, q, hierarchy, hand_offset, dt=None):
+    solver = PIKSolver(robot, strategy="progressive", damping=DAMPING, dt=dt,
+                       hierarchy=hierarchy)
+    solver.set_stack(default_stack_specs(), q)
+    hand = solver.task("right_hand")
+    target = hand.target
+    target.translation += np.asarray(hand_offset, dtype=float)
+    hand.set_target(target)
+    return solver
+
+
+def bench_start(robot) -> np.ndarray:
+    """half_sitting with the grippers 0.01 rad inside their upper limit 0."""
+    q = robot.initial_configuration()
+    for joint in ("gripper_left_joint", "gripper_right_joint"):
+        index = robot.model.joints[robot.joint_id(joint)].idx_q
+        q[index] = robot.model.upperPositionLimit[index] - 0.01
+    return q
+
+
+def test_talos_steps_agree_with_the_damped_hierarchy_inside_the_limits(talos):
+    q = bench_start(talos)
+    offset = [0.1, -0.1, 0.1]
+    damped = talos_solver(talos, q, None, offset)
+    bounded = talos_solver(talos, q, QPHierarchy.for_robot(talos, damping=DAMPING), offset)
+    for _ in range(30):
+        expected, result = damped.step(q), bounded.step(q)
+        assert result.binding_constraints == []
+        np.testing.assert_allclose(result.dq, expected.dq, rtol=0, atol=AGREEMENT)
+        q = expected.q
+
+
+def test_talos_velocity_bounds_bind_and_are_named(talos):
+    """A hand target 0.5 m away at dt 2 ms: the hierarchy's step (before PIKSolver's
+    uniform scaling) respects the velocity limits, keeps the feet, and names velocity
+    bounds as binding."""
+    dt = 0.002
+    q = bench_start(talos)
+    hierarchy = QPHierarchy.for_robot(talos, dt=dt, damping=DAMPING)
+    solver = talos_solver(talos, q, hierarchy, [0.5, -0.3, 0.3], dt=dt)
+    speed = talos.velocity_limit * dt
+    names = robot_dof_names(talos)
+    seen = set()
+    for _ in range(20):
+        result = solver.step(q)
+        assert result.velocity_scale > 1.0 - 1e-6  # only ProxSuite's 1e-9 can be left over
+        solved = result.dq[talos.limited_v_index] / result.velocity_scale
+        assert np.all(np.abs(solved) <= speed + BOUND_TOLERANCE)
+        assert result.levels[0].step_residual_norm < 1e-6
+        for constraint in result.binding_constraints:
+            dof, kind = constraint.rsplit(" ", 1)
+            assert dof in names and kind in ("lower", "upper", "velocity")
+        seen.update(result.binding_constraints)
+        limits = result.q[talos.limited_q_index]
+        assert np.all(limits >= np.minimum(talos.lower, q[talos.limited_q_index]) - 1e-12)
+        assert np.all(limits <= np.maximum(talos.upper, q[talos.limited_q_index]) + 1e-12)
+        q = result.q
+    assert any(constraint.endswith(" velocity") for constraint in seen)
+
+
+def test_talos_repeated_steps_are_reproducible(talos):
+    """Fresh solvers and a warm solver give the same step from the same configuration."""
+    dt = 0.002
+    q = bench_start(talos)
+
+    def solver():
+        return talos_solver(talos, q, QPHierarchy.for_robot(talos, dt=dt, damping=DAMPING),
+                            [0.5, -0.3, 0.3], dt=dt)
+
+    warm = solver()
+    for _ in range(5):
+        warm.step(q)
+    results = [solver().step(q), solver().step(q), warm.step(q)]
+    for result in results[1:]:
+        np.testing.assert_allclose(result.dq, results[0].dq, rtol=0, atol=1e-9)
+        assert result.binding_constraints == results[0].binding_constraints
+    assert np.array_equal(results[0].dq, results[1].dq)
