@@ -226,3 +226,25 @@ def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
     assert math.isclose(hand_end.x - hand_start.x, 0.05, abs_tol=1e-9)
     assert math.isclose(hand_end.z - hand_start.z, 0.06, abs_tol=1e-9)
     assert np.abs(np.array(probe.latest_joint_state().position) - start).max() > 0.01
+
+
+@pytest.mark.parametrize("parameters, check", [
+    (["-p", "hierarchy:=qp"], lambda status: status.hierarchy == "qp"),
+    (["-p", "robot:=mannequin", "-p", "rate:=50.0"],
+     lambda status: "right_shoulder_swing_x" in status.joint_names
+     and "right_shoulder_twist" in status.joint_names),
+], ids=["qp hierarchy", "mannequin with swing limits"])
+def test_node_variants_run_and_report(tmp_path, parameters, check):
+    group = ProcessGroup(tmp_path)
+    node = group.start("pik_node", "--ros-args", *parameters, name="pik_node")
+    probe = PikProbe("variant_probe")
+    try:
+        wait_until(lambda: probe.status_count() > 5 or node.poll() is not None, 60,
+                   what="pik_node status")
+        assert node.poll() is None, node.log_path.read_text()
+        status = probe.latest_status()
+        assert check(status)
+        assert len(status.damping) == len(status.joint_names)
+    finally:
+        probe.close()
+        group.stop_all()

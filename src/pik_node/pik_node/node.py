@@ -39,7 +39,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
 from stance.limits import STRATEGIES
-from stance.pik import demo_stack_file
+from stance.pik import HIERARCHIES, demo_stack_file
 from stance.stack import parse_stack_yaml
 from stance.swing import LimitFileError, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
@@ -69,6 +69,7 @@ class PikNode(Node):
             self.robot, strategy=get("strategy").value, damping=get("damping").value,
             activation=get("activation").value,
             dt=1.0 / rate if get("velocity_limits").value else None,
+            hierarchy=get("hierarchy").value,
             limit_models=load_limit_file(limit_file, self.robot) if limit_file else ())
         stack_file = get("stack_file").value or demo_stack_file(get("robot").value)
         if stack_file is None:
@@ -105,6 +106,7 @@ class PikNode(Node):
         self.cycles = 0
         self.overruns = 0
         self._status_template = None
+        self._hierarchy_name = get("hierarchy").value
         self.get_logger().info(
             f"robot {get('robot').value} (nv {self.robot.model.nv}), {len(self.solver.tasks)} "
             f"tasks, strategy {self.solver.strategy_name}, {rate:g} Hz")
@@ -126,6 +128,8 @@ class PikNode(Node):
             floating_point_range=[FloatingPointRange(from_value=1.0, to_value=2000.0)]))
         self.declare_parameter("strategy", "progressive", describe(
             f"joint limit strategy: {', '.join(STRATEGIES)}", read_only=False))
+        self.declare_parameter("hierarchy", "svd", describe(
+            f"prioritized solver: {', '.join(HIERARCHIES)} (qp: bounds as inequalities)"))
         self.declare_parameter("damping", 1e-3, describe(
             "damped least squares lambda",
             floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0)]))
@@ -265,6 +269,8 @@ class PikNode(Node):
         status = self._status_template
         status.header.stamp = stamp
         status.strategy = self.solver.strategy_name
+        status.hierarchy = self._hierarchy_name
+        status.binding_constraints = result.binding_constraints
         status.clamping_iterations = result.clamping_iterations
         status.solve_time = result.solve_time
         status.cycles = self.cycles

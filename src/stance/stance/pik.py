@@ -67,18 +67,20 @@ class PIKSolver:
     strategy: joint limit strategy name (none, clamping, progressive).
     damping: damped least squares lambda. activation: damping zone thickness (rad).
     dt: if set, joint variations respect the URDF velocity limits over dt seconds.
-    hierarchy: the prioritized solver (default DampedHierarchy(damping)); one whose
-        `uses_bounds` is true also receives per-DoF bounds on dq (joint and velocity limits).
+    hierarchy: the prioritized solver: "svd" (DampedHierarchy, damped least squares),
+        "qp" (QPHierarchy on ProxSuite, with joint and velocity bounds as inequalities), or
+        an object with solve_stacked(); one whose `uses_bounds` is true also receives
+        per-DoF bounds on dq.
     limit_models: limit models beyond the robot's 1-DoF joints (e.g. swing joints); their
         DoFs must not overlap.
     """
 
     def __init__(self, robot, strategy: str = "progressive", damping: float = 1e-3,
-                 activation: float = 0.2, dt: float | None = None, hierarchy=None,
+                 activation: float = 0.2, dt: float | None = None, hierarchy="svd",
                  limit_models=()):
         self.robot = robot
         self.strategy = make_strategy(strategy)
-        self.hierarchy = hierarchy or DampedHierarchy(damping=damping)
+        self.hierarchy = make_hierarchy(hierarchy, robot, damping, dt)
         self.limits = RevoluteLimits.from_robot(robot, activation)
         self.limit_models = [self.limits, *limit_models]
         self.limited_dof_names = [name for model in self.limit_models
@@ -274,6 +276,21 @@ class PIKSolver:
         ratio = np.abs(dq[self.robot.limited_v_index][usable]) / bound[usable]
         worst = float(ratio.max(initial=0.0))
         return 1.0 / worst if worst > 1.0 else 1.0
+
+
+HIERARCHIES = ("svd", "qp")
+
+
+def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):
+    """A hierarchy object from its name (see PIKSolver); objects pass through."""
+    if not isinstance(hierarchy, str):
+        return hierarchy
+    if hierarchy == "svd":
+        return DampedHierarchy(damping=damping)
+    if hierarchy == "qp":
+        from .qp_hierarchy import QPHierarchy
+        return QPHierarchy.for_robot(robot, dt=dt, damping=damping)
+    raise ValueError(f"unknown hierarchy {hierarchy!r} (expected one of {', '.join(HIERARCHIES)})")
 
 
 def _append_levels(jacobian, target, offsets, levels):
