@@ -3,6 +3,7 @@ with a reason and changes nothing, the stack can be replaced and tasks toggled."
 
 import copy
 import math
+import os
 
 import numpy as np
 import pytest
@@ -235,9 +236,11 @@ def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
      and "right_shoulder_twist" in status.joint_names),
 ], ids=["qp hierarchy", "mannequin with swing limits"])
 def test_node_variants_run_and_report(tmp_path, parameters, check):
+    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200  # away from the module's node
     group = ProcessGroup(tmp_path)
-    node = group.start("pik_node", "--ros-args", *parameters, name="pik_node")
-    probe = PikProbe("variant_probe")
+    node = group.start("pik_node", "--ros-args", *parameters, name="pik_node",
+                       env={"ROS_DOMAIN_ID": str(domain)})
+    probe = PikProbe("variant_probe", domain_id=domain)
     try:
         wait_until(lambda: probe.status_count() > 5 or node.poll() is not None, 60,
                    what="pik_node status")

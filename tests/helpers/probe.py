@@ -21,9 +21,9 @@ RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 class BackgroundNode:
     """An rclpy node in its own context, spun by a background thread until close()."""
 
-    def __init__(self, name):
+    def __init__(self, name, domain_id=None):
         self.context = rclpy.Context()
-        rclpy.init(context=self.context)
+        rclpy.init(context=self.context, domain_id=domain_id)
         self.node = Node(name, context=self.context)
 
     def start_spinning(self):
@@ -49,8 +49,8 @@ class BackgroundNode:
 class PikProbe(BackgroundNode):
     """Collects pik_node's outputs, publishes targets, calls its services."""
 
-    def __init__(self, name="pik_probe"):
-        super().__init__(name)
+    def __init__(self, name="pik_probe", domain_id=None):
+        super().__init__(name, domain_id)
         self.lock = threading.Lock()
         self.joint_states = []
         self.statuses = []

@@ -282,10 +282,10 @@ HIERARCHIES = ("svd", "qp")
 
 
 def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):
-    """A hierarchy object from its name (see PIKSolver); objects pass through."""
-    if not isinstance(hierarchy, str):
+    """A hierarchy object from its name (see PIKSolver; None = svd); objects pass through."""
+    if hierarchy is not None and not isinstance(hierarchy, str):
         return hierarchy
-    if hierarchy == "svd":
+    if hierarchy in (None, "svd"):
         return DampedHierarchy(damping=damping)
     if hierarchy == "qp":
         from .qp_hierarchy import QPHierarchy
