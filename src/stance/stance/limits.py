@@ -8,6 +8,8 @@ A strategy says how the models decide (clamping only, or progressive clamping) a
 levels of its own.
 
 - none: nothing is ever fixed.
+- gpm (Liegeois gradient projection): nothing is fixed either; one lowest-priority level
+  steps down the gradient of the joint-limit criterion, inside what the tasks leave free.
 - clamping (Baerlocher-Boulic): a joint whose q + dq leaves [lower, upper] is fixed on the
   limit it crosses.
 - progressive: equations 1-5 of the paper. Inside a damping zone of thickness `activation`
@@ -24,6 +26,8 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+
+from .hierarchy import Level
 
 
 @dataclass
@@ -139,6 +143,35 @@ class NoLimits(Strategy):
         return LimitDecision(np.zeros(0, dtype=int), empty, empty)
 
 
+class GradientProjection(NoLimits):
+    """Liegeois gradient projection method: limits are not enforced, the joints are only
+    attracted toward mid-range in the nullspace of every task (lowest priority level).
+
+    Criterion over the n limited 1-DoF joints (dimensionless):
+      H(q) = 1/(2n) sum_i ((q_i - mid_i) / (upper_i - lower_i))^2,
+      dH/dq_i = (q_i - mid_i) / (n (upper_i - lower_i)^2)   (1/rad).
+    The level asks dq_i = -gain dH/dq_i on those joints (gain in rad^2 per IK step). With the
+    default gain 1, a joint of range 2 rad among 7 moves 1/28 of its offset from mid-range
+    per step when the tasks leave it free.
+    """
+
+    name = "gpm"
+
+    def __init__(self, gain: float = 1.0):
+        self.gain = gain
+
+    def extra_levels(self, solver, q) -> list:
+        limits = solver.limits
+        count = len(limits.v_index)
+        if count == 0:
+            return []
+        span = limits.upper - limits.lower
+        gradient = (q[limits.q_index] - 0.5 * (limits.upper + limits.lower)) / (count * span**2)
+        selection = np.zeros((count, solver.robot.model.nv))
+        selection[np.arange(count), limits.v_index] = 1.0
+        return [Level(jacobian=selection, target=-self.gain * gradient)]
+
+
 class Clamping(Strategy):
     """Baerlocher-Boulic clamping: fix on the limit any joint that q + dq takes outside."""
 
@@ -152,7 +185,8 @@ class ProgressiveClamping(Strategy):
     progressive = True
 
 
-STRATEGIES = {strategy.name: strategy for strategy in (NoLimits, Clamping, ProgressiveClamping)}
+STRATEGIES = {strategy.name: strategy for strategy in (
+    NoLimits, GradientProjection, Clamping, ProgressiveClamping)}
 
 
 def make_strategy(name: str):

@@ -16,6 +16,8 @@ SUBCOMMANDS = {
     "demo": ("stance_tools.demo", "PIK demo on Talos: node, recorder, scripted path, plots"),
     "bench": ("stance_tools.bench",
               "benchmarks: pik (library step vs Pink), node (loop rate, latency)"),
+    "reproduce": ("stance_tools.reproduce",
+                  "reproduce the progressive clamping paper's experiments"),
 }
 
 
