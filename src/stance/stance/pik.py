@@ -87,6 +87,10 @@ class PIKSolver:
                                   for name in model.dof_names]
         self._dof_v_index = np.concatenate([model.v_index for model in self.limit_models])
         self.dt = dt
+        speed_step = robot.velocity_limit * dt if dt is not None else np.zeros(0)
+        usable = speed_step > 0
+        self._speed_index = robot.limited_v_index[usable] if np.any(usable) else None
+        self._inverse_speed_step = 1.0 / speed_step[usable]
         self.tasks = {}
         self._needs_com = False
         self._layout = self._make_layout()
@@ -267,14 +271,10 @@ class PIKSolver:
         return lower, upper
 
     def _velocity_scale(self, dq: np.ndarray) -> float:
-        if self.dt is None:
+        """Uniform factor (<= 1) keeping every 1-DoF joint under its velocity limit over dt."""
+        if self._speed_index is None:
             return 1.0
-        bound = self.robot.velocity_limit * self.dt
-        usable = bound > 0
-        if not np.any(usable):
-            return 1.0
-        ratio = np.abs(dq[self.robot.limited_v_index][usable]) / bound[usable]
-        worst = float(ratio.max(initial=0.0))
+        worst = float(np.max(np.abs(dq[self._speed_index]) * self._inverse_speed_step))
         return 1.0 / worst if worst > 1.0 else 1.0
 
 
