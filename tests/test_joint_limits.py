@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from helpers.problems import random_offset
 from stance.limits import RevoluteLimits, cubic_step, make_strategy
 from stance.pik import PIKSolver, default_stack_specs
 from stance.robot import Robot
@@ -121,13 +122,8 @@ def set_hand_targets(solver, rng, reachable: bool) -> None:
     """Move both hand targets by < 0.3 m (reachable) or 1-3 m (unreachable), random turn."""
     for name in HAND_FRAMES:
         task = solver.task(name)
-        if reachable:
-            offset = rng.uniform(-0.3, 0.3, 3)
-        else:
-            direction = rng.normal(size=3)
-            offset = rng.uniform(1.0, 3.0) * direction / np.linalg.norm(direction)
         target = task.target
-        target.translation += offset
+        target.translation += random_offset(rng, reachable)
         target.rotation = target.rotation @ pin.exp3(rng.normal(size=3))
         task.set_target(target)
 

@@ -7,8 +7,8 @@ and PIKSolver on Talos, where a conflicting lower level must leave the higher on
 import numpy as np
 import pytest
 from hypothesis import given, settings
-from hypothesis import strategies as st
 
+from helpers.problems import hierarchy_problems, residual
 from stance.hierarchy import DampedHierarchy, Level
 from stance.pik import PIKSolver, default_stack_specs
 from stance.robot import Robot
@@ -19,32 +19,11 @@ DAMPING = 1e-3
 PROPERTY = settings(max_examples=100, deadline=None, derandomize=True, database=None)
 
 
-@st.composite
-def hierarchy_problems(draw):
-    """(levels, nv, fixed_index, fixed_dq): random levels of random rank, some fixed joints."""
-    nv = draw(st.integers(2, 12))
-    shapes = draw(st.lists(
-        st.integers(1, 8).flatmap(lambda rows: st.tuples(st.just(rows),
-                                                         st.integers(0, min(rows, nv)))),
-        min_size=1, max_size=4))
-    fixed = draw(st.lists(st.booleans(), min_size=nv, max_size=nv))
-    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
-    levels = [Level(rng.normal(size=(rows, rank)) @ rng.normal(size=(rank, nv)),
-                    rng.normal(size=rows))
-              for rows, rank in shapes]
-    fixed_index = np.flatnonzero(fixed)
-    return levels, nv, fixed_index, rng.normal(size=len(fixed_index))
-
-
-def residual(level: Level, dq: np.ndarray) -> float:
-    return float(np.linalg.norm(level.jacobian @ dq - level.target))
-
-
 @PROPERTY
 @given(hierarchy_problems())
 def test_lower_levels_never_change_a_higher_level_residual(problem):
     """Level i's residual at the full solution equals its residual solving levels 0..i."""
-    levels, nv, fixed_index, fixed_dq = problem
+    levels, nv, fixed_index, fixed_dq, _ = problem
     hierarchy = DampedHierarchy(damping=DAMPING)
     full = hierarchy.solve(levels, nv, fixed_index, fixed_dq)
     for index, level in enumerate(levels):
@@ -57,7 +36,7 @@ def test_lower_levels_never_change_a_higher_level_residual(problem):
 @PROPERTY
 @given(hierarchy_problems())
 def test_fixed_joints_are_exactly_respected(problem):
-    levels, nv, fixed_index, fixed_dq = problem
+    levels, nv, fixed_index, fixed_dq, _ = problem
     solution = DampedHierarchy(damping=DAMPING).solve(levels, nv, fixed_index, fixed_dq)
     assert np.array_equal(solution.dq[fixed_index], fixed_dq)
 

@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pinocchio as pin
 import pytest
+from helpers.problems import random_offset
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -375,13 +376,8 @@ def run(robot, limit_models, start, seed, reachable, strategy="progressive", ste
         TaskSpec("posture", "posture", priority=3, gain=0.02)], start)
     for name in ("right_hand", "right_toe"):
         task = solver.task(name)
-        if reachable:
-            offset = rng.uniform(-0.3, 0.3, 3)
-        else:
-            heading = rng.normal(size=3)
-            offset = rng.uniform(1.0, 3.0) * heading / np.linalg.norm(heading)
         target = task.target
-        target.translation += offset
+        target.translation += random_offset(rng, reachable)
         task.set_target(target)
     q = start
     for _ in range(steps):
