@@ -241,6 +241,8 @@ def _polish(projected, residual, damping, rows, low, high, dual):
         value = np.where(upper_side[index], high[index], low[index])
         step = _equality_least_squares(design, wanted, rows[index], value)
         reach = rows @ step
+        if np.any(np.abs(reach[index] - value) > FEASIBILITY_SLACK):
+            return None  # the active bounds cannot all hold: not a vertex, no KKT point
         above, below = reach > high + FEASIBILITY_SLACK, reach < low - FEASIBILITY_SLACK
         if np.any(above | below):
             if np.all(active[above | below]):
