@@ -78,11 +78,6 @@ def test_first_level_is_the_bounded_damped_least_squares(problem):
     np.testing.assert_allclose(solution.dq[free], reference, rtol=0, atol=1e-7)
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "known defect: when the polish cannot certify ProxSuite's answer and that answer is a "
-    "hair outside the bounds, the level gives up (y = 0), which is suboptimal; a warm "
-    "start can avoid it, so a level's result depends on the solver's history (one example: "
-    "level-1 residual 0.4624 cold vs 0.4619 warm). Needs an exact active-set step"))
 @PROPERTY
 @given(bounded_problems())
 def test_lower_levels_keep_higher_levels_optimum_under_bounds(problem):

@@ -40,6 +40,8 @@ COLD_MAX_ITERATIONS = 1000
 FEASIBILITY_SLACK = 1e-12    # rad or m: polished y may exceed a bound by this much
 MULTIPLIER_SLACK = 1e-9      # relative to |gradient|: tolerated wrong-sign multiplier
 POLISH_ROUNDS = 8            # active set corrections tried by the polish
+ACTIVE_SET_ITERATIONS = 4    # x (variables + bound rows): cap of the exact active-set solve
+STEP_TOLERANCE = 1e-13       # relative: an active-set step this small is a stationary point
 BINDING_TOLERANCE = 1e-9     # rad or m: a dq this close to a bound is on it
 RANK_RELATIVE = 1e-12        # active bound rows: singular values below this x largest drop
 MOVABLE_ROW_NORM = 1e-12     # a DoF whose basis row is below this cannot move any more
@@ -160,12 +162,9 @@ class QPHierarchy:
         if polished is not None:
             step, active = polished
             return step, dofs[active]
-        self.unpolished += 1
-        step = qp.results.x.copy()
-        reach = rows @ step
-        if np.any(reach < low - QP_TOLERANCE) or np.any(reach > high + QP_TOLERANCE):
-            return np.zeros_like(step), dofs[:0]  # ProxSuite failed: the level gives up
-        return step, dofs[qp.results.z != 0]
+        self.unpolished += 1  # ProxSuite's answer is not certified: solve exactly instead
+        step, active = _active_set_solve(projected, residual, self.damping, rows, low, high)
+        return step, dofs[active]
 
     def _qp_solve(self, level, hessian, gradient, rows, low, high):
         """The level's persistent ProxSuite QP of this size, solved: warm start from its
@@ -259,6 +258,51 @@ def _polish(projected, residual, damping, rows, low, high, dual):
             return step, active
         active[index[np.argmin(multiplier)]] = False
     return None
+
+
+def _active_set_solve(projected, residual, damping, rows, low, high):
+    """Exact minimizer of |P y - r|^2 + damping^2 |y|^2 subject to low <= rows y <= high, and
+    its active row mask, by a primal active-set method from y = 0 (feasible: low <= 0 <=
+    high by construction). The objective is strictly convex, so the optimum is unique and
+    does not depend on any solver history; used where ProxSuite's answer is not certified."""
+    variables = projected.shape[1]
+    design = np.vstack([projected, damping * np.eye(variables)])
+    wanted = np.concatenate([residual, np.zeros(variables)])
+    y = np.zeros(variables)
+    working, side = [], []          # active rows and their side: +1 upper, -1 lower
+    scale = 1.0 + np.abs(projected.T @ residual).max(initial=0.0)
+    for _ in range(ACTIVE_SET_ITERATIONS * (variables + len(rows))):
+        step = _equality_least_squares(design, wanted - design @ y, rows[working],
+                                       np.zeros(len(working))) if working else \
+            np.linalg.lstsq(design, wanted - design @ y, rcond=None)[0]
+        if np.linalg.norm(step) <= STEP_TOLERANCE * (1.0 + np.linalg.norm(y)):
+            if not working:
+                break
+            gradient = design.T @ (design @ y - wanted)
+            outward = rows[working].T * np.array(side, dtype=float)
+            multiplier = np.linalg.lstsq(outward, -gradient, rcond=None)[0]
+            if np.all(multiplier >= -MULTIPLIER_SLACK * scale):
+                break
+            drop = int(np.argmin(multiplier))
+            del working[drop], side[drop]
+            continue
+        reach, change = rows @ y, rows @ step
+        fraction, blocking = 1.0, None
+        for row in range(len(rows)):
+            if row in working or abs(change[row]) <= STEP_TOLERANCE:
+                continue
+            bound = high[row] if change[row] > 0 else low[row]
+            if np.isfinite(bound):
+                limit = max(0.0, (bound - reach[row]) / change[row])
+                if limit < fraction:
+                    fraction, blocking = limit, (row, 1 if change[row] > 0 else -1)
+        y = y + fraction * step
+        if blocking is not None:
+            working.append(blocking[0])
+            side.append(blocking[1])
+    active = np.zeros(len(rows), dtype=bool)
+    active[working] = True
+    return y, active
 
 
 def _equality_least_squares(design, wanted, equality_rows, equality_value):
