@@ -31,3 +31,18 @@ def test_library_does_not_import_rclpy():
     code = ("import sys, stance, stance.pik, stance.hierarchy, stance.limits, stance.tasks; "
             "sys.exit('rclpy' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_readme_limit_file_example_is_valid():
+    """The limit-file example users copy from the README parses on the mannequin."""
+    import pathlib
+    import re
+
+    import yaml
+    from stance import Robot
+    from stance.swing import parse_limits
+    readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
+    block = re.search(r"```yaml\n(activation: .*?)```", readme, re.S).group(1)
+    models = parse_limits(yaml.safe_load(block), Robot.load("mannequin"))
+    assert [model.dof_names[0] for model in models] == ["left_hip_swing_x",
+                                                        "left_shoulder_swing_x"]
