@@ -251,3 +251,32 @@ def test_node_variants_run_and_report(tmp_path, parameters, check):
     finally:
         probe.close()
         group.stop_all()
+
+
+@pytest.mark.parametrize("parameter, reason", [
+    ("hierarchy:=bogus", "unknown hierarchy"),
+    ("strategy:=bogus", "unknown joint limit strategy"),
+    ("robot:=no_such_robot", "unknown example-robot-data robot"),
+])
+def test_bad_startup_parameter_is_refused_with_its_reason(tmp_path, parameter, reason):
+    group = ProcessGroup(tmp_path)
+    node = group.start("pik_node", "--ros-args", "-p", parameter, name="pik_node")
+    try:
+        assert node.wait(timeout=60) == 1
+        assert reason in node.log_path.read_text()
+    finally:
+        group.stop_all()
+
+
+def test_bad_runtime_strategy_is_refused_and_the_old_one_kept(pik):
+    node, probe = pik
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    client = probe.node.create_client(SetParameters, "/pik_node/set_parameters")
+    request = SetParameters.Request(parameters=[Parameter(
+        name="strategy", value=ParameterValue(type=ParameterType.PARAMETER_STRING,
+                                              string_value="bogus"))])
+    result = probe.call(client, request).results[0]
+    assert not result.successful and "strategy must be one of" in result.reason
+    assert fresh_status(probe).strategy == "progressive"
+    assert_alive(node, probe)
