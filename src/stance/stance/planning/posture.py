@@ -1,0 +1,430 @@
+"""Posture generator (Escande et al. 2008, section 2.2): a configuration that realises a set
+of contacts, free of collisions, inside the joint limits and statically stable, optimising a
+criterion (distance to a reference posture, or the potential f_T of the rough trajectory).
+
+Each iteration linearises everything at the current configuration q and solves one ProxSuite
+QP in x = [dq (nv), dv (3 if a contact is being placed)]:
+
+    minimise   w_c |J_c dq - B dv - e_c|^2        contacts (spot frames on their targets)
+             + criterion(dq) + damping |dq|^2
+    subject to joint limits and a trust region on dq, collision rows d + G dq >= margin,
+               the search volume A (v + dv) <= b,
+               CoM rows A_s (c + J_com dq)_xy <= b_s - margin
+
+Static stability is a region of the CoM's horizontal position, fixed for one call since the
+supporting contacts are: the support polygon for coplanar horizontal contacts, else the
+static equilibrium region (forces in friction cones balancing gravity; Bretl and Lall),
+computed by LPs once per support set. Contacts are heavy quadratic penalties rather than
+equalities, so no QP is ever infeasible (linearised equalities with a trust region can be);
+the final posture is accepted only when every requirement holds exactly: contact errors
+below `contact_tolerance`, no collision (with half the margin), joint limits, and static
+stability (support polygon, or the static equilibrium LP at the final CoM).
+
+Stability follows the paper (section 2.3): only contacts with `in_stability` support the
+robot; the others (a contact being broken, or a new one) are geometric constraints only.
+
+Frames: world frame, m, rad. Contact rows are world-aligned at the spot frame's origin
+(Pinocchio LOCAL_WORLD_ALIGNED); dq is Pinocchio's tangent (q' = integrate(q, dq)).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+from proxsuite import proxqp
+from scipy.optimize import linprog
+from scipy.spatial import ConvexHull, QhullError
+
+from ..robot import Robot
+from ..stack import TaskSpec
+from ..tasks import PoseTask
+from .contacts import Contact
+
+from .equilibrium import are_coplanar, contact_vertices, contacts_equilibrium, \
+    friction_cone_generators, support_polygon
+
+GRAVITY = 9.81  # m/s^2
+
+
+@dataclass
+class PostureSettings:
+    """Tuning of the posture generator (units in each comment)."""
+
+    max_iterations: int = 60
+    contact_weight: float = 1e4          # per (m or rad)^2 of contact error
+    damping: float = 1e-2                # per rad^2 (or m^2) of dq
+    criterion_weight: float = 1.0        # scales the criterion's quadratic model
+    trust_joint: float = 0.25            # rad: largest |dq| of a joint per iteration
+    trust_base: float = 0.08             # m or rad: largest |dq| of the base per iteration
+    collision_margin: float = 0.005      # m: clearance required between bodies
+    collision_near: float = 0.08         # m: pairs closer than this enter the QP
+    collision_push: float = 0.02         # m: largest clearance gain asked per iteration
+    com_margin: float = 0.01             # m: CoM inside the support polygon by this much
+    contact_tolerance: float = 1e-4      # m (and rad): contact error accepted as matched
+    converged_step: float = 2e-3         # |dq| below which the iteration has converged
+    stall_window: int = 10               # iterations: give up when the contact error does not
+                                         # halve over this many (see _stalled)
+    time_budget: float = 0.5             # s per call
+
+
+@dataclass
+class FreeContact:
+    """A contact being placed: spot on surface with (x, y, theta) searched in `volume`
+    (stance.planning.volumes.SearchVolume); geometric only (not in stability)."""
+
+    spot: str
+    surface: str
+    volume: object
+
+
+@dataclass
+class PostureResult:
+    success: bool
+    q: np.ndarray
+    contacts: tuple                    # the requested contacts, the placed one appended
+    reason: str = ""                   # why it failed ("" on success)
+    iterations: int = 0
+    seconds: float = 0.0
+    criterion: float = float("nan")    # criterion value at q
+    details: dict = field(default_factory=dict)
+
+
+class ReferencePosture:
+    """Criterion: weight * |difference(q_ref, q)|^2 over all DoFs (base included)."""
+
+    def __init__(self, model, q_reference: np.ndarray, weight: float = 1e-2):
+        self.model, self.q_reference, self.weight = model, np.asarray(q_reference), weight
+
+    def quadratic(self, q):
+        """(Hessian diagonal (nv), gradient (nv), value) of the criterion at q for dq."""
+        residual = pin.difference(self.model, self.q_reference, q)
+        return (np.full(self.model.nv, 2.0 * self.weight), 2.0 * self.weight * residual,
+                self.weight * float(residual @ residual))
+
+
+class PotentialCriterion:
+    """Criterion: weight * f_T(q) (paper eq. 1): its exact gradient, and the Hessian 2 I of
+    the valley term |difference(Q, q)|^2 with Q held fixed (Gauss-Newton)."""
+
+    def __init__(self, trajectory, weight: float = 1e-2):
+        self.trajectory, self.weight = trajectory, weight
+
+    def quadratic(self, q):
+        value = self.trajectory.evaluate(q)
+        return (np.full(len(value.residual), 2.0 * self.weight), self.weight * value.gradient,
+                self.weight * value.value)
+
+
+class PostureGenerator:
+    """Finds postures for sets of contacts in one scene (see module docstring).
+
+    robot: stance.robot.Robot; scene: stance.planning.scene.Scene; collision: a
+    stance.planning.collision.CollisionModel for the same robot and scene, or None to
+    ignore collisions.
+    """
+
+    def __init__(self, robot: Robot, scene, collision=None,
+                 settings: PostureSettings | None = None):
+        self.scene, self.collision = scene, collision
+        self.settings = settings or PostureSettings()
+        model = pin.Model(robot.model)
+        for spot in scene.spots.values():
+            parent = model.frames[robot.frame_id(spot.frame)]
+            model.addFrame(pin.Frame(f"spot:{spot.name}", parent.parentJoint,
+                                     parent.placement * spot.placement, pin.OP_FRAME))
+        self.robot = Robot(model=model, urdf=robot.urdf, floating_base=robot.floating_base,
+                           reference_configurations=robot.reference_configurations)
+        self.model, self.data = self.robot.model, self.robot.data
+        self.mass = float(pin.computeTotalMass(self.model))
+        self.weight = self.mass * GRAVITY
+        self._spot_tasks = {name: PoseTask(TaskSpec(name=f"spot_{i}", kind="pose",
+                                                    frame=f"spot:{name}"), self.robot)
+                            for i, name in enumerate(scene.spots)}
+        limited = self.robot.limited_v_index
+        self._limited_v, self._limited_q = limited, self.robot.limited_q_index
+        self._base_nv = self.robot.base_nv
+        self._regions = {}
+        self.calls = 0
+
+    # ----------------------------------------------------------------- public API
+    def generate(self, contacts, q_init: np.ndarray, criterion, free: FreeContact | None = None,
+                 time_budget: float | None = None) -> PostureResult:
+        """Search a posture for `contacts` (plus `free` being placed) from q_init."""
+        start = time.perf_counter()
+        budget = self.settings.time_budget if time_budget is None else time_budget
+        self.calls += 1
+        contacts = tuple(contacts)
+        support = [c for c in contacts if c.in_stability]
+        if not support:
+            return PostureResult(False, q_init, contacts, "no supporting contact")
+        q = self._clip_to_limits(np.array(q_init, dtype=float))
+        for contact in contacts:
+            self._spot_tasks[contact.spot].target = contact.spot_target(
+                self.scene.surfaces[contact.surface])
+        stability = self._stability_model(support)
+        ignored = self._ignored_pairs(contacts, free)
+        v = self._initial_free_parameters(q, free) if free else None
+        iterations = 0
+        errors = []
+        for iterations in range(1, self.settings.max_iterations + 1):
+            if time.perf_counter() - start > budget:
+                break
+            dq, dv, contact_error = self._iterate(q, contacts, free, v, stability, criterion,
+                                                  ignored)
+            errors.append(contact_error)
+            q = self._clip_to_limits(pin.integrate(self.model, q, dq))
+            if free is not None:
+                v = v + dv
+            step = math.sqrt(dq @ dq + (dv @ dv if dv is not None else 0.0))
+            if step < self.settings.converged_step and \
+                    contact_error < 0.5 * self.settings.contact_tolerance:
+                break
+            if self._stalled(errors):
+                break
+        final = contacts if free is None else contacts + (self._free_contact(free, v),)
+        reason, details = self._acceptance(q, final, support, ignored)
+        value = criterion.quadratic(q)[2] if criterion is not None else float("nan")
+        return PostureResult(reason == "", q, final, reason, iterations,
+                             time.perf_counter() - start, value, details)
+
+    def _stalled(self, errors) -> bool:
+        """The contact error (m or rad) has not halved over the last stall_window iterations
+        while still far from the tolerance: the contacts are out of reach."""
+        window = self.settings.stall_window
+        if len(errors) <= window or errors[-1] < 100 * self.settings.contact_tolerance:
+            return False
+        return errors[-1] > 0.5 * errors[-1 - window]
+
+    # ----------------------------------------------------------------- model pieces
+    def _kinematics(self, q):
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+        pin.jacobianCenterOfMass(self.model, self.data, q, False)
+
+    def _clip_to_limits(self, q):
+        q[self._limited_q] = np.clip(q[self._limited_q], self.robot.lower, self.robot.upper)
+        return q
+
+    def _stability_model(self, support):
+        """(A, b): the CoM's world xy is statically stable where A c_xy <= b. Coplanar
+        horizontal support: its support polygon; otherwise the static equilibrium region
+        (cached per support set)."""
+        key = tuple(sorted(support, key=lambda c: c.pair))
+        if key not in self._regions:
+            surfaces = self.scene.surfaces
+            horizontal = all(surfaces[c.surface].pose.rotation[2, 2]
+                             > math.cos(math.radians(2)) for c in support)
+            if horizontal and are_coplanar(support, self.scene):
+                _, a, b = support_polygon(support, self.scene)
+                self._regions[key] = (a, b)
+            else:
+                self._regions[key] = equilibrium_region(support, self.scene)
+        return self._regions[key]
+
+    def _ignored_pairs(self, contacts, free):
+        if self.collision is None:
+            return frozenset()
+        touching = list(contacts)
+        if free is not None:
+            touching.append(Contact(free.spot, free.surface, 0.0, 0.0, 0.0, False))
+        return self.collision.ignored_pairs_for_contacts(touching)
+
+    def _initial_free_parameters(self, q, free):
+        """(x, y, theta) of the spot's current pose seen from the surface, moved into the
+        search volume (its Chebyshev centre) when outside."""
+        self._kinematics(q)
+        surface = self.scene.surfaces[free.surface]
+        spot = self.data.oMf[self.model.getFrameId(f"spot:{free.spot}")]
+        local = surface.pose.actInv(spot)
+        x_axis = local.rotation[:, 0]
+        v = np.array([local.translation[0], local.translation[1],
+                      math.atan2(x_axis[1], x_axis[0])])
+        return v if free.volume.contains(v) else np.asarray(free.volume.chebyshev_center())
+
+    def _free_contact(self, free, v):
+        return Contact(free.spot, free.surface, float(v[0]), float(v[1]),
+                       float(math.remainder(v[2], 2 * math.pi)), False)
+
+    # ----------------------------------------------------------------- one iteration
+    def _iterate(self, q, contacts, free, v, stability, criterion, ignored):
+        settings, nv = self.settings, self.model.nv
+        self._kinematics(q)
+        n_free = 3 if free is not None else 0
+        n = nv + n_free
+        hessian = np.zeros((n, n))
+        gradient = np.zeros(n)
+
+        rows, targets = [], []
+        for contact in contacts:
+            jacobian, error = self._spot_tasks[contact.spot].jacobian_and_error(self.robot, q)
+            rows.append(np.hstack([jacobian, np.zeros((6, n - nv))]))
+            targets.append(error)
+        if free is not None:
+            jacobian, error, b_free = self._free_rows(free, v)
+            rows.append(np.hstack([jacobian, -b_free]))
+            targets.append(error)
+        contact_rows, contact_error = np.vstack(rows), np.concatenate(targets)
+        hessian += settings.contact_weight * contact_rows.T @ contact_rows
+        gradient -= settings.contact_weight * contact_rows.T @ contact_error
+
+        if criterion is not None:
+            diagonal, linear, _ = criterion.quadratic(q)
+            hessian[:nv, :nv] += settings.criterion_weight * np.diag(diagonal)
+            gradient[:nv] += settings.criterion_weight * linear
+        hessian[:nv, :nv] += settings.damping * np.eye(nv)
+        if n_free:
+            hessian[nv:nv + 3, nv:nv + 3] += settings.damping * np.eye(3)
+
+        a, b = stability
+        inequalities = [np.hstack([a @ self.data.Jcom[:2], np.zeros((len(b), n_free))])]
+        lower = [np.full(len(b), -1e20)]
+        upper = [b - settings.com_margin - a @ self.data.com[0][:2]]
+        if self.collision is not None:
+            distances, gradients, _ = self.collision.constraint_rows(
+                q, near=settings.collision_near, ignored=ignored)
+            if len(distances):
+                needed = np.minimum(settings.collision_margin - distances,
+                                    settings.collision_push)
+                inequalities.append(np.hstack([gradients, np.zeros((len(distances), n - nv))]))
+                lower.append(needed)
+                upper.append(np.full(len(distances), 1e20))
+        if free is not None:
+            a, b = free.volume.halfspaces()
+            inequalities.append(np.hstack([np.zeros((len(b), nv)), a]))
+            lower.append(np.full(len(b), -1e20))
+            upper.append(b - a @ v)
+
+        box_lower, box_upper = self._box(q, n, n_free)
+        x = self._solve(hessian, gradient, np.vstack(inequalities), np.concatenate(lower),
+                        np.concatenate(upper), box_lower, box_upper)
+        dv = x[nv:nv + 3] if n_free else None
+        return x[:nv], dv, float(np.max(np.abs(contact_error)))
+
+    def _free_rows(self, free, v):
+        """Jacobian and error of the spot being placed at (x, y, theta) = v, and B: how the
+        spot target moves with dv (world-aligned rows)."""
+        surface = self.scene.surfaces[free.surface]
+        task = self._spot_tasks[free.spot]
+        task.target = self._free_contact(free, v).spot_target(surface)
+        jacobian, error = task.jacobian_and_error(self.robot, None)
+        b_free = np.zeros((6, 3))
+        b_free[:3, 0] = surface.pose.rotation[:, 0]
+        b_free[:3, 1] = surface.pose.rotation[:, 1]
+        b_free[3:, 2] = surface.pose.rotation[:, 2]
+        return jacobian, error, b_free
+
+    def _box(self, q, n, n_free):
+        """Bounds on x: trust region, joint limits, free contact step."""
+        settings, nv = self.settings, self.model.nv
+        lower = np.full(n, -np.inf)
+        upper = np.full(n, np.inf)
+        lower[:self._base_nv], upper[:self._base_nv] = -settings.trust_base, settings.trust_base
+        lower[self._base_nv:nv], upper[self._base_nv:nv] = -settings.trust_joint, \
+            settings.trust_joint
+        position = q[self._limited_q]
+        lower[self._limited_v] = np.maximum(lower[self._limited_v], self.robot.lower - position)
+        upper[self._limited_v] = np.minimum(upper[self._limited_v], self.robot.upper - position)
+        if n_free:
+            lower[nv:nv + 3], upper[nv:nv + 3] = -settings.trust_base, settings.trust_base
+        return lower, upper
+
+    def _solve(self, hessian, gradient, c_matrix, lower, upper, box_lower, box_upper):
+        n = hessian.shape[0]
+        qp = proxqp.dense.QP(n, 0, c_matrix.shape[0], True)
+        qp.settings.eps_abs = 1e-7
+        qp.settings.eps_rel = 0.0
+        qp.settings.max_iter = 2000
+        qp.settings.verbose = False
+        qp.init(hessian, gradient, None, None, c_matrix, lower, upper, box_lower, box_upper)
+        qp.solve()
+        x = np.array(qp.results.x)
+        if not np.all(np.isfinite(x)):
+            return np.zeros(n)
+        return np.clip(x, box_lower, box_upper)
+
+    # ----------------------------------------------------------------- acceptance
+    def _acceptance(self, q, contacts, support, ignored):
+        """("", details) when every requirement holds at q, else (reason, details)."""
+        settings = self.settings
+        pin.framesForwardKinematics(self.model, self.data, q)
+        com = pin.centerOfMass(self.model, self.data, q)
+        details = {}
+        worst, worst_spot = 0.0, ""
+        for contact in contacts:
+            task = self._spot_tasks[contact.spot]
+            task.target = contact.spot_target(self.scene.surfaces[contact.surface])
+            error = float(np.max(np.abs(task.full_error(self.robot))))
+            if error > worst:
+                worst, worst_spot = error, contact.spot
+        details["contact_error"] = worst
+        if worst > settings.contact_tolerance:
+            return f"contact {worst_spot} not reached (error {worst * 1000:.1f} mm or mrad)", \
+                details
+        if self.collision is not None:
+            distance, label = self.collision.min_distance(q, ignored=ignored)
+            details["min_distance"] = distance
+            if distance < settings.collision_margin * 0.5:
+                return f"collision {label} (distance {distance * 1000:.1f} mm)", details
+        stable, margin = self._statically_stable(support, com)
+        details["stability_margin"] = margin
+        if not stable:
+            return "not statically stable", details
+        return "", details
+
+    def _statically_stable(self, support, com):
+        """Exact check at the CoM (m): the support polygon for coplanar horizontal
+        support, else the static equilibrium LP. Returns (stable, margin in m or N)."""
+        surfaces = self.scene.surfaces
+        if all(surfaces[c.surface].pose.rotation[2, 2] > math.cos(math.radians(2))
+               for c in support) and are_coplanar(support, self.scene):
+            _, a, b = support_polygon(support, self.scene)
+            margin = float(np.min(b - a @ com[:2]))
+            return margin >= 0.5 * self.settings.com_margin, margin
+        result = contacts_equilibrium(support, self.scene, com, self.mass, GRAVITY)
+        return bool(result.feasible), float(result.margin)
+
+
+def equilibrium_region(support, scene, directions: int = 16) -> tuple:
+    """(A, b) with A c_xy <= b: an inner approximation of the CoM positions (world xy, m)
+    where some contact forces of `support` balance gravity (the static equilibrium
+    region, a vertical prism: Bretl and Lall). Its vertices are the extreme CoM positions
+    along `directions` horizontal directions, each an LP over the cone multipliers
+    (weight units) and the CoM. An empty region gives rows that nothing satisfies."""
+    points, generators = [], []
+    for contact in support:
+        vertices, normal, friction = contact_vertices(contact, scene)
+        tangent = contact.contact_frame(scene.surfaces[contact.surface]).rotation[:, 0]
+        cone = friction_cone_generators(normal, friction, tangent=tangent)
+        points.extend([vertex] * len(cone) for vertex in vertices)
+        generators.extend(cone for _ in vertices)
+    lever = np.vstack([np.array(group) for group in points])
+    edges = np.vstack(generators)
+    count = len(edges)
+    # unknowns: multipliers (count, >= 0), c_x, c_y; force and moment balance per weight
+    balance = np.zeros((6, count + 2))
+    balance[:3, :count] = edges.T
+    balance[3:, :count] = np.cross(lever, edges).T
+    balance[3, count + 1] = -1.0     # moment x: sum (p x f)_x - c_y = 0
+    balance[4, count] = 1.0          # moment y: sum (p x f)_y + c_x = 0
+    target = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    centre = lever[:, :2].mean(axis=0)
+    bounds = [(0.0, None)] * count + [(centre[0] - 5.0, centre[0] + 5.0),
+                                      (centre[1] - 5.0, centre[1] + 5.0)]
+    extremes = []
+    for angle in np.linspace(0.0, 2 * math.pi, directions, endpoint=False):
+        objective = np.zeros(count + 2)
+        objective[count:] = -np.array([math.cos(angle), math.sin(angle)])
+        result = linprog(objective, A_eq=balance, b_eq=target, bounds=bounds, method="highs")
+        if result.status != 0:
+            return np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([-1.0, -1.0])
+        extremes.append(result.x[count:])
+    extremes = np.array(extremes)
+    try:
+        hull = ConvexHull(extremes)
+    except QhullError:
+        return np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([-1.0, -1.0])
+    return hull.equations[:, :2], -hull.equations[:, 2]

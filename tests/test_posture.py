@@ -1,0 +1,150 @@
+"""Posture generator: contacts matched, joint limits, static stability (coplanar and not),
+failures with a reason, the static equilibrium region against the LP."""
+
+import math
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from stance.planning.contacts import Contact
+from stance.planning.equilibrium import contacts_equilibrium
+from stance.planning.posture import (PostureGenerator, ReferencePosture,
+                                     equilibrium_region)
+from stance.planning.scene import ContactSpot, Goal, Obstacle, Scene, Surface
+from stance.robot import Robot
+
+FLIP = pin.SE3(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
+SOLE = np.array([[-0.1, -0.05], [0.1, -0.05], [0.1, 0.05], [-0.1, 0.05]])
+PALM = np.array([[-0.03, -0.03], [0.03, -0.03], [0.03, 0.03], [-0.03, 0.03]])
+
+
+def square(half):
+    return np.array([[-half, -half], [half, -half], [half, half], [-half, half]], float)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return Robot.load("talos")
+
+
+@pytest.fixture(scope="module")
+def scene(robot):
+    """Talos on a floor, a table top to its front right, a wall to its left."""
+    q0 = robot.initial_configuration()
+    spots = {
+        "left_sole": ContactSpot("left_sole", "left_sole_link", FLIP, SOLE),
+        "right_sole": ContactSpot("right_sole", "right_sole_link", FLIP, SOLE),
+        "right_hand": ContactSpot("right_hand", "gripper_right_base_link", pin.SE3.Identity(),
+                                  PALM),
+        "left_hand": ContactSpot("left_hand", "gripper_left_base_link", pin.SE3.Identity(),
+                                 PALM),
+    }
+    wall_rotation = pin.rpy.rpyToMatrix(math.pi / 2, 0.0, 0.0)   # normal along -y
+    surfaces = {
+        "floor": Surface("floor", pin.SE3.Identity(), square(2.0), 0.7, "floor_box"),
+        "table": Surface("table", pin.SE3(np.eye(3), np.array([0.35, -0.3, 0.75])),
+                         square(0.3), 0.7),
+        "wall": Surface("wall", pin.SE3(wall_rotation, np.array([0.2, 0.75, 1.0])),
+                        square(0.5), 0.7),
+        "far_table": Surface("far_table", pin.SE3(np.eye(3), np.array([2.5, 0.0, 0.75])),
+                             square(0.2), 0.7),
+    }
+    obstacles = {"floor_box": Obstacle("floor_box", "box",
+                                       pin.SE3(np.eye(3), np.array([0.0, 0.0, -0.05])),
+                                       np.array([4.0, 4.0, 0.1]))}
+    return Scene("posture_test", "talos", surfaces, obstacles, spots, [], q0,
+                 np.array([q0, q0]), Goal("base_link", "x", 0.3))
+
+
+@pytest.fixture(scope="module")
+def generator(robot, scene):
+    return PostureGenerator(robot, scene)
+
+
+def sole_contact(robot, scene, spot, dx=0.0, dy=0.0):
+    q0 = robot.initial_configuration()
+    pin.framesForwardKinematics(robot.model, robot.data, q0)
+    frame = robot.data.oMf[robot.model.getFrameId(scene.spots[spot].frame)]
+    contact = frame * scene.spots[spot].placement * FLIP
+    theta = math.atan2(contact.rotation[1, 0], contact.rotation[0, 0])
+    return Contact(spot, "floor", contact.translation[0] + dx, contact.translation[1] + dy,
+                   theta)
+
+
+def spot_pose(generator, q, spot):
+    pin.framesForwardKinematics(generator.model, generator.data, q)
+    return generator.data.oMf[generator.model.getFrameId(f"spot:{spot}")]
+
+
+def assert_realised(generator, scene, result):
+    assert result.success, result.reason
+    for contact in result.contacts:
+        target = contact.spot_target(scene.surfaces[contact.surface])
+        achieved = spot_pose(generator, result.q, contact.spot)
+        assert np.linalg.norm(achieved.translation - target.translation) < 1e-3
+        angle = np.linalg.norm(pin.log3(achieved.rotation.T @ target.rotation))
+        assert angle < math.radians(1.0)
+    robot = generator.robot
+    q_limited = result.q[robot.limited_q_index]
+    assert np.all(q_limited >= robot.lower - 1e-9) and np.all(q_limited <= robot.upper + 1e-9)
+
+
+@pytest.mark.parametrize("dx", [0.0, 0.15, 0.3])
+def test_a_moved_foot_is_reached_with_the_com_over_the_feet(robot, scene, generator, dx):
+    contacts = (sole_contact(robot, scene, "left_sole"),
+                sole_contact(robot, scene, "right_sole", dx=dx))
+    q0 = robot.initial_configuration()
+    result = generator.generate(contacts, q0, ReferencePosture(robot.model, q0))
+    assert_realised(generator, scene, result)
+    com = pin.centerOfMass(generator.model, generator.data, result.q)
+    equilibrium = contacts_equilibrium(contacts, scene, com, generator.mass)
+    assert equilibrium.feasible and equilibrium.margin > 0
+
+
+def test_a_hand_on_a_table_with_one_foot_supporting(robot, scene, generator):
+    """Non-coplanar support: left sole and right hand carry the robot; the right sole only
+    touches (a contact being broken)."""
+    contacts = (sole_contact(robot, scene, "left_sole"),
+                sole_contact(robot, scene, "right_sole").with_stability(False),
+                Contact("right_hand", "table", 0.05, 0.0, 0.0))
+    q0 = robot.initial_configuration()
+    result = generator.generate(contacts, q0, ReferencePosture(robot.model, q0))
+    assert_realised(generator, scene, result)
+    com = pin.centerOfMass(generator.model, generator.data, result.q)
+    support = [c for c in contacts if c.in_stability]
+    assert contacts_equilibrium(support, scene, com, generator.mass).feasible
+
+
+def test_an_unreachable_contact_fails_with_its_reason(robot, scene, generator):
+    contacts = (sole_contact(robot, scene, "left_sole"),
+                sole_contact(robot, scene, "right_sole"),
+                Contact("right_hand", "far_table", 0.0, 0.0, 0.0))
+    q0 = robot.initial_configuration()
+    result = generator.generate(contacts, q0, ReferencePosture(robot.model, q0))
+    assert not result.success
+    assert "right_hand" in result.reason and "not reached" in result.reason
+
+
+def test_no_supporting_contact_is_refused(robot, scene, generator):
+    contact = sole_contact(robot, scene, "left_sole").with_stability(False)
+    result = generator.generate((contact,), robot.initial_configuration(), None)
+    assert not result.success and "supporting" in result.reason
+
+
+def test_equilibrium_region_is_inside_what_the_lp_accepts(robot, scene, generator):
+    """Every CoM inside the (inner) region is in static equilibrium by the LP; the region
+    is not trivially small; far outside it the LP fails."""
+    support = (sole_contact(robot, scene, "left_sole"),
+               Contact("left_hand", "wall", 0.0, 0.2, 0.0))
+    a, b = equilibrium_region(support, scene)
+    rng = np.random.default_rng(3)
+    inside = 0
+    for point in rng.uniform(-1.0, 1.5, size=(400, 2)):
+        if np.all(a @ point <= b - 1e-6):
+            inside += 1
+            com = np.array([point[0], point[1], 0.9])
+            assert contacts_equilibrium(support, scene, com, generator.mass).margin > -1e-6
+    assert inside > 0
+    far = np.array([5.0, 5.0, 0.9])
+    assert not contacts_equilibrium(support, scene, far, generator.mass).feasible
