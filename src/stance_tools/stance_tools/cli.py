@@ -18,6 +18,10 @@ SUBCOMMANDS = {
               "benchmarks: pik (library step vs Pink), node (loop rate, latency)"),
     "reproduce": ("stance_tools.reproduce",
                   "reproduce the progressive clamping paper's experiments"),
+    "plan": ("stance_tools.plan", "plan contact stances for a scene (best-first, no ROS)"),
+    "check-plan": ("stance_tools.plan_tools",
+                   "verify a contact plan's stances independently (exit 1 on failures)"),
+    "plot-plan": ("stance_tools.plan_tools", "contact sheet (PNG) of a plan's stances"),
 }
 
 
