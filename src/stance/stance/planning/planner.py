@@ -1,0 +1,323 @@
+"""Best-first contact-before-motion planner (Escande et al. 2008, sections 2.2-2.8).
+
+The search runs over sets of supporting contacts. Each node is a stance with a witness
+posture; its sons' supporting sets differ from its own by one contact (section 2.3):
+- removing contact c: a posture with every contact of the set, c no longer in stability
+  (checked at the instant c is broken); the son supports on the set without c, and its
+  stance keeps c as a geometric contact (in_stability False): the witness still touches it;
+- adding a contact of a free spot R on a surface E: the posture generator places it, with
+  the potential f_T as criterion, inside a convex search volume of E x ]-pi, pi] (2.5-2.6),
+  the new contact not yet in stability; a volume around the found contact is then cut out
+  and the rest split into convex parts for the next son of the same pair.
+The leaf with the least f_T (2.7) is expanded first. With `ordered_sons` (2.8) a pair
+(R, E) keeps a single leaf: its next son is generated only when that leaf is selected,
+because the generator returns a pair's sons best first. Without it every son of every pair
+is generated when a node is expanded (up to MAX_SONS_PER_PAIR). New leaves too close to an
+existing stance (same pairs, every contact within CLOSENESS) are discarded.
+
+plan_contacts never raises for planning failures: it returns a PlanOutcome with a reason.
+Everything is deterministic (posture generations are capped in iterations, not time), so
+the same request gives the same plan; the wall-time budget only ends the search.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from .contacts import Plan
+from .volumes import initial_volume
+
+# Failure reasons, as reported by the planner, the action result and the CLI.
+SUCCESS = "success"
+INFEASIBLE_START = "infeasible_start"   # no posture realises the start stance
+NO_PATH = "no_path"                     # the search tree is exhausted
+BUDGET_EXHAUSTED = "budget_exhausted"   # max_nodes or time_budget reached
+BAD_GOAL = "bad_goal"                   # goal condition malformed or names unknown frames
+CANCELLED = "cancelled"                 # should_stop() returned True
+
+
+@dataclass
+class PlanRequest:
+    """What to plan. None fields default to the scene's own start, key postures, goal."""
+
+    scene: object                       # stance.planning.scene.Scene
+    start: tuple | None = None          # Contacts of the start stance
+    key_postures: np.ndarray | None = None   # (K, nq)
+    goal: object | None = None          # stance.planning.scene.Goal
+    max_nodes: int = 2400               # nodes expanded at most
+    time_budget: float = 900.0          # s of wall time at most
+    seed: int = 0
+    ordered_sons: bool = True           # section 2.8: one leaf per (spot, surface) pair
+
+
+@dataclass
+class PlanProgress:
+    nodes_expanded: int
+    posture_generations: int
+    best_potential: float
+    elapsed: float                      # s
+
+
+@dataclass
+class PlanOutcome:
+    reason: str                         # SUCCESS or one of the failure reasons above
+    message: str                        # human-readable detail
+    plan: Plan | None = None
+    statistics: dict = field(default_factory=dict)
+
+    @property
+    def success(self) -> bool:
+        return self.reason == SUCCESS
+
+
+CLOSENESS_POSITION = 0.03   # m: contacts closer than this are the same contact
+CLOSENESS_ANGLE = 0.3       # rad
+SUBTRACTED_HALF_EXTENTS = (0.08, 0.08, 0.6)  # m, m, rad: volume V cut around a found contact
+MAX_SONS_PER_PAIR = 4       # unordered generation: sons per (spot, surface) pair and node
+
+
+@dataclass
+class _Node:
+    """A stance in the search tree (leaf until expanded): the contacts its witness q
+    touches, those with in_stability supporting it."""
+
+    contacts: tuple
+    q: np.ndarray
+    potential: float
+    parent: _Node | None
+    pair_source: object = None      # the _PairSons that produced it (ordered mode)
+    depth: int = 0
+
+    @property
+    def supporting(self) -> tuple:
+        return tuple(c for c in self.contacts if c.in_stability)
+
+
+class _PairSons:
+    """Sons of one node for one (spot, surface) pair, best first: each call places the
+    spot in the best remaining convex search volume and cuts a volume around it out."""
+
+    def __init__(self, node, spot, surface, volumes):
+        self.node, self.spot, self.surface = node, spot, surface
+        self.volumes = list(volumes)
+
+    def next_son(self, generate):
+        """(contacts, q, potential) of the next son, or None when the pair is exhausted;
+        `generate(node, free)` runs the posture generator."""
+        from .posture import FreeContact
+        while self.volumes:
+            volume = self.volumes.pop(0)
+            result = generate(self.node, FreeContact(self.spot, self.surface, volume))
+            if result is None:
+                continue
+            placed = result.contacts[-1]
+            center = np.array([placed.x, placed.y, placed.theta])
+            self.volumes.extend(volume.subtract(center, np.array(SUBTRACTED_HALF_EXTENTS)))
+            return result
+        return None
+
+
+class _Search:
+    def __init__(self, robot, request, generator, trajectory, progress, should_stop):
+        self.robot, self.request = robot, request
+        self.scene = request.scene
+        self.generator, self.trajectory = generator, trajectory
+        self.progress, self.should_stop = progress, should_stop
+        self.leaves = []            # heap of (potential, counter, node)
+        self.counter = 0
+        self.stances = {}           # pairs key -> list of contact arrays (closeness)
+        self.expanded = 0
+        self.best_potential = math.inf
+        self.start_time = time.perf_counter()
+        self.stopped_reason = None
+
+    # --------------------------------------------------------------- posture calls
+    def generate(self, node, free=None, removed=None):
+        """Posture for node's supporting contacts (+ free being placed, or with `removed`
+        out of stability) from node's witness with f_T as criterion; None on failure."""
+        if self._must_stop():
+            return None
+        contacts = tuple(c.with_stability(c != removed) for c in node.supporting)
+        result = self.generator.generate(contacts, node.q, self.criterion, free=free)
+        return result if result.success else None
+
+    def _must_stop(self):
+        if self.stopped_reason:
+            return True
+        if self.should_stop is not None and self.should_stop():
+            self.stopped_reason = CANCELLED
+        elif time.perf_counter() - self.start_time > self.request.time_budget:
+            self.stopped_reason = BUDGET_EXHAUSTED
+        return self.stopped_reason is not None
+
+    # --------------------------------------------------------------- leaves
+    def _too_close(self, contacts):
+        """True when a stance with the same supporting pairs, every contact within the
+        closeness thresholds, exists; otherwise remembers this one."""
+        ordered = sorted((c for c in contacts if c.in_stability), key=lambda c: c.pair)
+        key = tuple(c.pair for c in ordered)
+        values = np.array([[c.x, c.y, c.theta] for c in ordered])
+        for other in self.stances.get(key, []):
+            offsets = np.abs(values - other)
+            offsets[:, 2] = np.abs(np.remainder(offsets[:, 2] + math.pi, 2 * math.pi) - math.pi)
+            if np.all(np.hypot(offsets[:, 0], offsets[:, 1]) < CLOSENESS_POSITION) and \
+                    np.all(offsets[:, 2] < CLOSENESS_ANGLE):
+                return True
+        self.stances.setdefault(key, []).append(values)
+        return False
+
+    def add_leaf(self, contacts, q, parent, pair_source=None):
+        if self._too_close(contacts):
+            return None
+        potential = float(self.trajectory.evaluate(q).value)
+        node = _Node(contacts, q, potential, parent, pair_source,
+                     0 if parent is None else parent.depth + 1)
+        heapq.heappush(self.leaves, (potential, self.counter, node))
+        self.counter += 1
+        return node
+
+    # --------------------------------------------------------------- expansion
+    def expand(self, node):
+        """Generate node's sons (module docstring)."""
+        supporting = node.supporting
+        if len(supporting) > 1:
+            for contact in supporting:
+                result = self.generate(node, removed=contact)
+                if result is not None:
+                    self.add_leaf(result.contacts, result.q, node)
+        used_spots = {c.spot for c in supporting}
+        for spot in self.scene.spots.values():
+            if spot.name in used_spots:
+                continue
+            for surface in self.scene.surfaces.values():
+                if spot.surfaces and surface.name not in spot.surfaces:
+                    continue
+                pair = _PairSons(node, spot.name, surface.name,
+                                 [initial_volume(surface.polygon)])
+                self._pair_sons(pair, node)
+
+    def _pair_sons(self, pair, node):
+        """Ordered mode: the pair's next son only; otherwise up to MAX_SONS_PER_PAIR."""
+        count = 1 if self.request.ordered_sons else MAX_SONS_PER_PAIR
+        for _ in range(count):
+            while True:
+                result = pair.next_son(self.generate)
+                if result is None:
+                    return
+                placed = result.contacts[-1].with_stability(True)
+                son = self.add_leaf(node.supporting + (placed,), result.q, node,
+                                    pair if self.request.ordered_sons else None)
+                if son is not None:
+                    break
+
+    def run(self, start_contacts, start_q):
+        while self.leaves:
+            if self._must_stop():
+                return None, self.stopped_reason
+            if self.expanded >= self.request.max_nodes:
+                return None, BUDGET_EXHAUSTED
+            _, _, node = heapq.heappop(self.leaves)
+            self.expanded += 1
+            self.best_potential = min(self.best_potential, node.potential)
+            if self._goal_reached(node.q):
+                return node, SUCCESS
+            if node.pair_source is not None:
+                self._pair_sons(node.pair_source, node.parent)
+            self.expand(node)
+            if self.progress is not None:
+                self.progress(self.snapshot())
+        return None, self.stopped_reason or NO_PATH
+
+    def _goal_reached(self, q):
+        goal = self.request.goal
+        pin.framesForwardKinematics(self.robot.model, self.robot.data, q)
+        position = self.robot.data.oMf[self.robot.model.getFrameId(goal.frame)].translation
+        return goal.reached(position)
+
+    def snapshot(self):
+        return PlanProgress(self.expanded, self.generator.calls, self.best_potential,
+                            time.perf_counter() - self.start_time)
+
+
+def _check_goal(robot, goal):
+    """A failure message for a malformed goal, or ''."""
+    if goal is None:
+        return "no goal condition"
+    if not robot.model.existFrame(goal.frame):
+        return f"goal.frame: unknown robot frame {goal.frame!r}"
+    if goal.axis not in ("x", "y", "z"):
+        return f"goal.axis: must be x, y or z, got {goal.axis!r}"
+    if goal.sense not in (1, -1):
+        return f"goal.sense: must be +1 or -1, got {goal.sense!r}"
+    if not math.isfinite(goal.threshold):
+        return "goal.threshold: not finite"
+    return ""
+
+
+def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
+                  collision=None, settings=None) -> PlanOutcome:
+    """Plan stances from the request's start to its goal (module docstring).
+
+    robot: stance.robot.Robot of the scene; progress(PlanProgress) is called after each
+    expansion; should_stop() is polled between posture generations (cancel). collision:
+    a CollisionModel to reuse (built from the scene otherwise); settings: PostureSettings.
+    """
+    from .collision import CollisionModel
+    from .contacts import Contact, Stance
+    from .posture import PostureGenerator, PostureSettings, PotentialCriterion, \
+        ReferencePosture
+    from .potential import RoughTrajectory
+
+    scene = request.scene
+    goal = request.goal if request.goal is not None else scene.goal
+    request.goal = goal
+    message = _check_goal(robot, goal)
+    if message:
+        return PlanOutcome(BAD_GOAL, message)
+    key_postures = scene.key_postures if request.key_postures is None else request.key_postures
+    start = tuple(Contact(c.spot, c.surface, c.x, c.y, c.theta)
+                  for c in (scene.start if request.start is None else request.start))
+    if collision is None:
+        collision = CollisionModel(robot, scene)
+    settings = settings or PostureSettings(time_budget=math.inf)
+    generator = PostureGenerator(robot, scene, collision, settings)
+    trajectory = RoughTrajectory(robot.model, np.asarray(key_postures))
+    search = _Search(robot, request, generator, trajectory, progress, should_stop)
+    search.criterion = PotentialCriterion(trajectory)
+
+    start_q = scene.start_configuration if request.start is None else key_postures[0]
+    first = generator.generate(start, start_q, ReferencePosture(robot.model, start_q))
+    if not first.success:
+        return PlanOutcome(INFEASIBLE_START, f"no posture realises the start stance: "
+                                             f"{first.reason}", statistics=_statistics(search))
+    search.add_leaf(start, first.q, None)
+    node, reason = search.run(start, first.q)
+    statistics = _statistics(search)
+    if node is None:
+        messages = {NO_PATH: "the search tree is exhausted",
+                    BUDGET_EXHAUSTED: f"budget exhausted after {search.expanded} nodes and "
+                                      f"{statistics['planning_time']:.0f} s",
+                    CANCELLED: "cancelled"}
+        return PlanOutcome(reason, messages[reason], statistics=statistics)
+    chain = []
+    while node is not None:
+        chain.append(Stance(node.contacts, node.q, node.potential))
+        node = node.parent
+    chain.reverse()
+    statistics["stances"] = len(chain)
+    plan = Plan(scene.name, scene.robot, chain, statistics)
+    return PlanOutcome(SUCCESS, f"{len(chain)} stances, {search.expanded} nodes expanded",
+                       plan, statistics)
+
+
+def _statistics(search) -> dict:
+    return {"nodes_expanded": search.expanded,
+            "posture_generations": search.generator.calls,
+            "planning_time": time.perf_counter() - search.start_time,
+            "ordered_sons": search.request.ordered_sons}
