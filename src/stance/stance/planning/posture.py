@@ -33,6 +33,7 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import daqp
 import numpy as np
 import pinocchio as pin
 from proxsuite import proxqp
@@ -69,6 +70,7 @@ class PostureSettings:
     stall_window: int = 10               # iterations: give up when the contact error does not
                                          # halve over this many (see _stalled)
     time_budget: float = 0.5             # s per call
+    qp_backend: str = "daqp"             # "daqp" or "proxsuite" (see stance bench plan)
 
 
 @dataclass
@@ -333,17 +335,11 @@ class PostureGenerator:
         return lower, upper
 
     def _solve(self, hessian, gradient, c_matrix, lower, upper, box_lower, box_upper):
-        n = hessian.shape[0]
-        qp = proxqp.dense.QP(n, 0, c_matrix.shape[0], True)
-        qp.settings.eps_abs = 1e-7
-        qp.settings.eps_rel = 0.0
-        qp.settings.max_iter = 2000
-        qp.settings.verbose = False
-        qp.init(hessian, gradient, None, None, c_matrix, lower, upper, box_lower, box_upper)
-        qp.solve()
-        x = np.array(qp.results.x)
-        if not np.all(np.isfinite(x)):
-            return np.zeros(n)
+        """x of the iteration's QP with the configured backend; a zero step if it fails."""
+        solve = _solve_daqp if self.settings.qp_backend == "daqp" else _solve_proxsuite
+        x = solve(hessian, gradient, c_matrix, lower, upper, box_lower, box_upper)
+        if x is None or not np.all(np.isfinite(x)):
+            return np.zeros(hessian.shape[0])
         return np.clip(x, box_lower, box_upper)
 
     # ----------------------------------------------------------------- acceptance
@@ -386,6 +382,33 @@ class PostureGenerator:
             return margin >= 0.5 * self.settings.com_margin, margin
         result = contacts_equilibrium(support, self.scene, com, self.mass, GRAVITY)
         return bool(result.feasible), float(result.margin)
+
+
+def _solve_daqp(hessian, gradient, c_matrix, lower, upper, box_lower, box_upper):
+    """DAQP (dual active set): bounds first, then the general rows. When the rows cannot
+    all hold (a collision row against the trust region), they are made soft and the QP
+    solved again."""
+    rows = len(lower)
+    upper_all = np.concatenate([box_upper, np.minimum(upper, 1e30)])
+    lower_all = np.concatenate([box_lower, np.maximum(lower, -1e30)])
+    sense = np.zeros(len(upper_all), dtype=np.int32)
+    x, _, flag, _ = daqp.solve(hessian, gradient, c_matrix, upper_all, lower_all, sense)
+    if flag != 1 and rows:
+        sense[len(box_upper):] = 8
+        x, _, flag, _ = daqp.solve(hessian, gradient, c_matrix, upper_all, lower_all, sense)
+    return np.asarray(x) if flag == 1 else None
+
+
+def _solve_proxsuite(hessian, gradient, c_matrix, lower, upper, box_lower, box_upper):
+    """ProxSuite dense QP (the IK's engine); slower on these ill-conditioned problems."""
+    qp = proxqp.dense.QP(hessian.shape[0], 0, c_matrix.shape[0], True)
+    qp.settings.eps_abs = 1e-7
+    qp.settings.eps_rel = 0.0
+    qp.settings.max_iter = 2000
+    qp.settings.verbose = False
+    qp.init(hessian, gradient, None, None, c_matrix, lower, upper, box_lower, box_upper)
+    qp.solve()
+    return np.array(qp.results.x)
 
 
 def equilibrium_region(support, scene, directions: int = 16) -> tuple:
