@@ -6,6 +6,8 @@
 - levels: cost of a step as priority levels are added, SVD and QP hierarchies side by side
   (Talos, 1 to 4 levels; Panda arm, 2 levels).
 - node: pik_node's loop rate and latency over DDS (stance_tools.bench_node).
+- plan: the contact planner on the chair scene, ordered sons on and off
+  (stance_tools.bench_plan).
 
 A sub-benchmark is registered in BENCHMARKS by its module and the names of two functions,
 ``add(parser)`` and ``run(args) -> int``; modules must import heavy dependencies (rclpy) in
@@ -35,6 +37,9 @@ BENCHMARKS = {
                "step cost per added priority level, SVD vs QP hierarchy (Talos, Panda)"),
     "node": ("stance_tools.bench_node", "add_node_arguments", "run_node",
              "pik_node over DDS: loop rate at 500 Hz, target-to-joint_states latency"),
+    "plan": ("stance_tools.bench_plan", "add_plan_arguments", "run_plan",
+             "contact planner on the chair scene: nodes, posture generations, time; "
+             "ordered sons on vs off"),
 }
 
 
