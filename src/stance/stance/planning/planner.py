@@ -54,6 +54,7 @@ class PlanRequest:
     time_budget: float = 900.0          # s of wall time at most
     seed: int = 0
     ordered_sons: bool = True           # section 2.8: one leaf per (spot, surface) pair
+    slope: float = 10.0                 # k of f_T (eq. 1): f units per m along T'
 
 
 @dataclass
@@ -136,6 +137,7 @@ class _Search:
         self.best_potential = math.inf
         self.start_time = time.perf_counter()
         self.stopped_reason = None
+        self.posture_calls = []     # (kind, success, seconds) of every posture generation
 
     # --------------------------------------------------------------- posture calls
     def generate(self, node, free=None, removed=None):
@@ -145,6 +147,8 @@ class _Search:
             return None
         contacts = tuple(c.with_stability(c != removed) for c in node.supporting)
         result = self.generator.generate(contacts, node.q, self.criterion, free=free)
+        kind = "add" if free is not None else "remove"
+        self.posture_calls.append((kind, result.success, result.seconds))
         return result if result.success else None
 
     def _must_stop(self):
@@ -287,12 +291,13 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
         collision = CollisionModel(robot, scene)
     settings = settings or PostureSettings(time_budget=math.inf)
     generator = PostureGenerator(robot, scene, collision, settings)
-    trajectory = RoughTrajectory(robot.model, np.asarray(key_postures))
+    trajectory = RoughTrajectory(robot.model, np.asarray(key_postures), k=request.slope)
     search = _Search(robot, request, generator, trajectory, progress, should_stop)
     search.criterion = PotentialCriterion(trajectory)
 
     start_q = scene.start_configuration if request.start is None else key_postures[0]
     first = generator.generate(start, start_q, ReferencePosture(robot.model, start_q))
+    search.posture_calls.append(("start", first.success, first.seconds))
     if not first.success:
         return PlanOutcome(INFEASIBLE_START, f"no posture realises the start stance: "
                                              f"{first.reason}", statistics=_statistics(search))
@@ -317,7 +322,18 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
 
 
 def _statistics(search) -> dict:
+    """Search figures; posture_calls per kind (start, add, remove): calls, successes and
+    the median and p99 seconds of a call."""
+    by_kind = {}
+    for kind in ("start", "add", "remove"):
+        calls = [(ok, seconds) for k, ok, seconds in search.posture_calls if k == kind]
+        if calls:
+            seconds = np.array([s for _, s in calls])
+            by_kind[kind] = {"calls": len(calls), "successes": sum(ok for ok, _ in calls),
+                             "median_s": float(np.median(seconds)),
+                             "p99_s": float(np.percentile(seconds, 99))}
     return {"nodes_expanded": search.expanded,
             "posture_generations": search.generator.calls,
             "planning_time": time.perf_counter() - search.start_time,
-            "ordered_sons": search.request.ordered_sons}
+            "ordered_sons": search.request.ordered_sons,
+            "posture_calls": by_kind}

@@ -1,0 +1,112 @@
+"""Best-first contact planner on the small flat_steps scene: a verified plan, determinism,
+ordered son generation, and every failure reason (bad goal, infeasible start, no path,
+budget, cancel) returned instead of raised or hung."""
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from stance.planning import planner
+from stance.planning.contacts import Contact
+from stance.planning.planner import PlanRequest, plan_contacts
+from stance.planning.scene import Goal, load_scene
+from stance.planning.verify import verify_plan
+from stance.robot import Robot
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return Robot.load("talos")
+
+
+@pytest.fixture(scope="module")
+def scene(robot):
+    return load_scene("flat_steps", robot)
+
+
+@pytest.fixture(scope="module")
+def outcome(robot, scene):
+    return plan_contacts(robot, PlanRequest(scene=scene, max_nodes=200, time_budget=120.0))
+
+
+def test_flat_steps_plan_reaches_the_goal_and_passes_verification(robot, scene, outcome):
+    assert outcome.success, outcome.message
+    plan = outcome.plan
+    assert len(plan.stances) >= 3
+    first, last = plan.stances[0], plan.stances[-1]
+    assert {c.spot for c in first.contacts} == {"left_sole", "right_sole"}
+    assert last.q[0] > scene.goal.threshold   # base_link x past the goal line
+    report = verify_plan(plan, scene, robot)
+    assert report.ok, report.failures
+    assert outcome.statistics["nodes_expanded"] <= 200
+
+
+def test_same_request_gives_the_same_plan(robot, scene, outcome):
+    """Same stances; values agree to rounding (the QP solver's SIMD paths depend on memory
+    alignment, so the last bits may differ between runs)."""
+    again = plan_contacts(robot, PlanRequest(scene=scene, max_nodes=200, time_budget=120.0))
+    assert len(again.plan.stances) == len(outcome.plan.stances)
+    for ours, theirs in zip(again.plan.stances, outcome.plan.stances):
+        assert [(c.spot, c.surface, c.in_stability) for c in ours.contacts] == \
+            [(c.spot, c.surface, c.in_stability) for c in theirs.contacts]
+        np.testing.assert_allclose([(c.x, c.y, c.theta) for c in ours.contacts],
+                                   [(c.x, c.y, c.theta) for c in theirs.contacts], atol=1e-9)
+        np.testing.assert_allclose(ours.q, theirs.q, atol=1e-9)
+
+
+def test_ordered_sons_need_fewer_posture_generations(robot, scene, outcome):
+    unordered = plan_contacts(robot, PlanRequest(scene=scene, max_nodes=200, time_budget=120.0,
+                                                 ordered_sons=False))
+    assert unordered.success
+    assert unordered.statistics["posture_generations"] > \
+        outcome.statistics["posture_generations"]
+
+
+def test_unknown_goal_frame_is_a_bad_goal(robot, scene):
+    result = plan_contacts(robot, PlanRequest(scene=scene, goal=Goal("no_such_frame", "x", 1.0)))
+    assert result.reason == planner.BAD_GOAL and "no_such_frame" in result.message
+
+
+def test_feet_too_far_apart_is_an_infeasible_start(robot, scene):
+    start = (Contact("left_sole", "floor", 1.9, 0.1, 0.0), Contact("right_sole", "floor", 0.0,
+                                                                   -0.1, 0.0))
+    result = plan_contacts(robot, PlanRequest(scene=scene, start=start))
+    assert result.reason == planner.INFEASIBLE_START and "not reached" in result.message
+
+
+def test_a_goal_off_the_floor_ends_with_the_budget(robot, scene):
+    far = Goal("base_link", "x", 5.0)     # the floor ends at x = 2 m
+    began = time.monotonic()
+    result = plan_contacts(robot, PlanRequest(scene=scene, goal=far, max_nodes=25))
+    assert result.reason in (planner.BUDGET_EXHAUSTED, planner.NO_PATH)
+    assert result.statistics["nodes_expanded"] <= 25
+    assert time.monotonic() - began < 60.0
+
+
+def test_time_budget_ends_the_search(robot, scene):
+    result = plan_contacts(robot, PlanRequest(scene=scene, goal=Goal("base_link", "x", 5.0),
+                                              time_budget=0.5))
+    assert result.reason == planner.BUDGET_EXHAUSTED
+    assert result.statistics["planning_time"] < 5.0
+
+
+def test_cancel_is_seen_between_posture_generations(robot, scene):
+    calls = []
+
+    def should_stop():
+        calls.append(time.monotonic())
+        return len(calls) > 5
+
+    result = plan_contacts(robot, PlanRequest(scene=scene), should_stop=should_stop)
+    assert result.reason == planner.CANCELLED
+    assert len(calls) == 6   # stopped at the first poll that said so
+
+
+def test_progress_reports_grow(robot, scene):
+    reports = []
+    plan_contacts(robot, PlanRequest(scene=replace(scene), max_nodes=6), progress=reports.append)
+    expanded = [r.nodes_expanded for r in reports]
+    assert expanded == sorted(expanded) and expanded[-1] >= 5
+    assert all(r.elapsed >= 0 for r in reports)
