@@ -80,7 +80,7 @@ class PlanOutcome:
 CLOSENESS_POSITION = 0.03   # m: contacts closer than this are the same contact
 CLOSENESS_ANGLE = 0.3       # rad
 SUBTRACTED_HALF_EXTENTS = (0.08, 0.08, 0.6)  # m, m, rad: volume V cut around a found contact
-MAX_SONS_PER_PAIR = 4       # unordered generation: sons per (spot, surface) pair and node
+MAX_SONS_PER_PAIR = 8       # unordered generation: sons per (spot, surface) pair and node
 
 
 @dataclass
