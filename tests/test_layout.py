@@ -8,6 +8,7 @@ from ament_index_python.packages import get_package_prefix, get_package_share_di
 
 
 @pytest.mark.parametrize("package, executable", [("pik_node", "pik_node"),
+                                                 ("contact_planner_node", "contact_planner_node"),
                                                  ("stance_tools", "stance")])
 def test_executables_are_where_ros2_run_looks(package, executable):
     path = os.path.join(get_package_prefix(package), "lib", package, executable)
@@ -18,17 +19,20 @@ def test_interface_definitions_are_installed_for_recorders():
     share = get_package_share_directory("stance_msgs")
     for name in ("SolverStatus", "TaskSpec", "ContactStance", "StancePlan", "StabilizerState"):
         assert os.path.isfile(os.path.join(share, "msg", f"{name}.msg")), name
+    assert os.path.isfile(os.path.join(share, "action", "PlanContacts.action"))
 
 
-def test_parameter_file_is_installed():
-    share = get_package_share_directory("pik_node")
-    assert os.path.isfile(os.path.join(share, "config", "pik_node.yaml"))
+@pytest.mark.parametrize("package", ["pik_node", "contact_planner_node"])
+def test_parameter_file_is_installed(package):
+    share = get_package_share_directory(package)
+    assert os.path.isfile(os.path.join(share, "config", f"{package}.yaml"))
 
 
 def test_library_does_not_import_rclpy():
     import subprocess
     import sys
-    code = ("import sys, stance, stance.pik, stance.hierarchy, stance.limits, stance.tasks; "
+    code = ("import sys, stance, stance.pik, stance.hierarchy, stance.limits, stance.tasks, "
+            "stance.planning.planner, stance.planning.posture, stance.planning.verify; "
             "sys.exit('rclpy' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
