@@ -62,12 +62,12 @@ class PostureSettings:
     trust_joint: float = 0.25            # rad: largest |dq| of a joint per iteration
     trust_base: float = 0.08             # m or rad: largest |dq| of the base per iteration
     collision_margin: float = 0.005      # m: clearance required between bodies
-    collision_near: float = 0.08         # m: pairs closer than this enter the QP
+    collision_near: float = 0.05         # m: pairs closer than this enter the QP
     collision_push: float = 0.02         # m: largest clearance gain asked per iteration
     com_margin: float = 0.01             # m: CoM inside the support polygon by this much
     contact_tolerance: float = 1e-4      # m (and rad): contact error accepted as matched
-    converged_step: float = 2e-3         # |dq| below which the iteration has converged
-    stall_window: int = 10               # iterations: give up when the contact error does not
+    converged_step: float = 1e-2         # |dq| below which the iteration has converged
+    stall_window: int = 10              # iterations: give up when the contact error does not
                                          # halve over this many (see _stalled)
     time_budget: float = 0.5             # s per call
     qp_backend: str = "daqp"             # "daqp" or "proxsuite" (see stance bench plan)
