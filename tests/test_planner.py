@@ -114,3 +114,22 @@ def test_progress_reports_grow(robot, scene):
     expanded = [r.nodes_expanded for r in reports]
     assert expanded == sorted(expanded) and expanded[-1] >= 5
     assert all(r.elapsed >= 0 for r in reports)
+
+
+def test_plan_check_and_plot_from_the_command_line(tmp_path):
+    """The CLI path users take: stance plan -> check-plan (independent) -> plot-plan."""
+    import subprocess
+
+    plan_file, sheet = tmp_path / "plan.json", tmp_path / "sheet.png"
+    planned = subprocess.run(["stance", "plan", "flat_steps", "-o", str(plan_file), "--quiet"],
+                             capture_output=True, text=True, timeout=300)
+    assert planned.returncode == 0, planned.stderr
+    assert "success" in planned.stdout
+    checked = subprocess.run(["stance", "check-plan", str(plan_file)], capture_output=True,
+                             text=True, timeout=300)
+    assert checked.returncode == 0, checked.stdout + checked.stderr
+    assert "plan OK" in checked.stdout
+    plotted = subprocess.run(["stance", "plot-plan", str(plan_file), "-o", str(sheet)],
+                             capture_output=True, text=True, timeout=300)
+    assert plotted.returncode == 0, plotted.stderr
+    assert sheet.stat().st_size > 10_000
