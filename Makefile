@@ -8,7 +8,7 @@ BUILD_STAMP := $(CURDIR)/install/.stance-build
 # Python packages are symlink-installed: only packaging, interface and data files need a rebuild.
 WORKSPACE_SOURCES := colcon.meta $(shell find msgs src cmake -type f \( -name package.xml -o -name setup.py \
   -o -name setup.cfg -o -name CMakeLists.txt -o -name '*.cmake' -o -name '*.msg' -o -name '*.srv' \
-  -o -name '*.action' -o -path '*/config/*' -o -path '*/resource/*' \) 2>/dev/null)
+  -o -name '*.action' -o -path '*/config/*' -o -path '*/resource/*' -o -path '*/launch/*' \) 2>/dev/null)
 ENV := source $(CURDIR)/env.sh &&
 
 .PHONY: help setup demo test bench clean

@@ -22,6 +22,8 @@ SUBCOMMANDS = {
     "check-plan": ("stance_tools.plan_tools",
                    "verify a contact plan's stances independently (exit 1 on failures)"),
     "plot-plan": ("stance_tools.plan_tools", "contact sheet (PNG) of a plan's stances"),
+    "graph": ("stance_tools.graph",
+              "run the node graph: one process per node, crashed nodes restarted"),
 }
 
 
