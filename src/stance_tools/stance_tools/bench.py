@@ -8,6 +8,7 @@
 - node: pik_node's loop rate and latency over DDS (stance_tools.bench_node).
 - plan: the contact planner on the chair scene, ordered sons on and off
   (stance_tools.bench_plan).
+- interpolate: postures along the transitions of a plan (stance_tools.bench_interpolate).
 
 A sub-benchmark is registered in BENCHMARKS by its module and the names of two functions,
 ``add(parser)`` and ``run(args) -> int``; modules must import heavy dependencies (rclpy) in
@@ -37,6 +38,9 @@ BENCHMARKS = {
                "step cost per added priority level, SVD vs QP hierarchy (Talos, Panda)"),
     "node": ("stance_tools.bench_node", "add_node_arguments", "run_node",
              "pik_node over DDS: loop rate at 500 Hz, target-to-joint_states latency"),
+    "interpolate": ("stance_tools.bench_interpolate", "add_interpolate_arguments",
+                    "run_interpolate",
+                    "interpolation between stances: whole-plan time, per transition"),
     "plan": ("stance_tools.bench_plan", "add_plan_arguments", "run_plan",
              "contact planner on the chair scene: nodes, posture generations, time; "
              "ordered sons on vs off"),

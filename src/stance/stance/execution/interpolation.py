@@ -1,0 +1,339 @@
+"""Configuration paths between consecutive stances of a plan (Escande et al. 2008, 3.3).
+
+For each transition (stance S1 with witness q1 -> stance S2 with witness q2):
+- the common contacts (same spot at the same place in S1 and S2) are held and all take
+  part in stability, as in the paper;
+- a spot whose contact is geometrically created, broken or changed moves along
+  `SpotPath`: a straight line of `lift` m along the old surface's normal when it leaves a
+  contact, a straight line along the new surface's normal when it enters one, a C1 cubic
+  spline between; orientation constant on the lines, slerp along the spline. The plan
+  can move two spots in one transition (a contact kept geometric after its removal is
+  dropped while another spot is placed): each then has its own path;
+- the transition is cut in n steps; the n - 1 interior samples are posture generations
+  (warm-started from the previous sample) with the common contacts, every moving spot held
+  at its path pose C_k, and the criterion: distance to pin.interpolate(q1, q2, k / n).
+  The ends are the witnesses themselves, so consecutive transitions join exactly.
+When only stability changes, the interior samples hold the common contacts alone.
+
+Beyond the paper: a moving spot on the same kinematic branch as a held spot with fewer than
+6 DoFs between them (a thigh leaving a seat while its foot stays on the floor, a sole
+stepping while its thigh stays on the seat: knee and ankle) is held in position only, as
+a 6-D path of fixed orientation is then generally unreachable.
+
+Frames: world frame, m, rad; configurations are Pinocchio q (nq).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+from scipy.interpolate import make_interp_spline
+from scipy.spatial.transform import Rotation, Slerp
+
+from ..planning.posture import PostureGenerator, PostureSettings, ReferencePosture
+
+LIFT = 0.05    # m: default length of the straight lines leaving and entering a contact
+# m: clearance required at the samples (the planner's stances use 5 mm): the moving body's
+# path is imposed, so it passes as close to the other bodies as the path takes it (a swing
+# foot by the stance shin in flat_steps fails at 5 mm)
+SAMPLE_COLLISION_MARGIN = 0.002
+
+
+class InterpolationError(RuntimeError):
+    """A sample's posture generation failed: which transition, which sample and why."""
+
+    def __init__(self, transition: int, sample: int, steps: int, reason: str):
+        super().__init__(f"transition {transition} -> {transition + 1}: sample {sample}/"
+                         f"{steps} failed: {reason}")
+        self.transition, self.sample, self.reason = transition, sample, reason
+
+
+@dataclass(frozen=True, eq=False)
+class SpotPose:
+    """A spot held at a world pose: a geometric contact for PostureGenerator (it reads
+    spot, surface, in_stability and spot_target). `surface` names the surface whose
+    obstacle the spot's body may touch (its collisions are ignored); position_only: the
+    orientation is free (see _PathPostureGenerator)."""
+
+    spot: str
+    surface: str
+    pose: pin.SE3
+    position_only: bool = False
+    in_stability: bool = False
+
+    def spot_target(self, surface) -> pin.SE3:
+        return self.pose
+
+
+class _PositionRows:
+    """A spot PoseTask with its orientation rows zeroed (Jacobian and error)."""
+
+    def __init__(self, task):
+        self.task = task
+
+    @property
+    def target(self):
+        return self.task.target
+
+    @target.setter
+    def target(self, pose):
+        self.task.target = pose
+
+    def full_error(self, robot):
+        error = self.task.full_error(robot)
+        error[3:] = 0.0
+        return error
+
+    def jacobian_and_error(self, robot, q):
+        jacobian, error = self.task.jacobian_and_error(robot, q)
+        jacobian = jacobian.copy()
+        jacobian[3:] = 0.0
+        error[3:] = 0.0
+        return jacobian, error
+
+
+class _PathPostureGenerator(PostureGenerator):
+    """PostureGenerator that holds SpotPose contacts with position_only in position only.
+    Swaps its spot tasks (PostureGenerator._spot_tasks) for the call: a public row
+    selection in posture.py would remove this."""
+
+    def generate(self, contacts, q_init, criterion, free=None, time_budget=None):
+        tasks = dict(self._spot_tasks)
+        for contact in contacts:
+            if getattr(contact, "position_only", False):
+                self._spot_tasks[contact.spot] = _PositionRows(tasks[contact.spot])
+        try:
+            return super().generate(contacts, q_init, criterion, free, time_budget)
+        finally:
+            self._spot_tasks.update(tasks)
+
+
+class SpotPath:
+    """World pose of a spot frame along s in [0, 1], proportional to the distance along
+    the straight lines and the spline's parameter (a chord-length scale, so the position's
+    derivative is continuous across the junctions).
+
+    start, end: spot poses (world); leave_normal / enter_normal: outward unit normal (world)
+    of the surface being left / entered, or None when the spot is free at that end.
+    """
+
+    def __init__(self, start: pin.SE3, end: pin.SE3, leave_normal=None, enter_normal=None,
+                 lift: float = LIFT):
+        self.start, self.end = start, end
+        first = start.translation + (lift * leave_normal if leave_normal is not None else 0.0)
+        last = end.translation + (lift * enter_normal if enter_normal is not None else 0.0)
+        self.leave_length = lift if leave_normal is not None else 0.0
+        self.enter_length = lift if enter_normal is not None else 0.0
+        self.spline_length = max(float(np.linalg.norm(last - first)), lift, 1e-6)
+        # end conditions: unit tangent where a line joins (C1), else natural (zero curvature)
+        left = [(1, leave_normal)] if leave_normal is not None else [(2, np.zeros(3))]
+        right = [(1, -enter_normal)] if enter_normal is not None else [(2, np.zeros(3))]
+        self.spline = make_interp_spline([0.0, self.spline_length], np.vstack([first, last]),
+                                         k=3, bc_type=(left, right))
+        self.leave_normal, self.enter_normal = leave_normal, enter_normal
+        self.slerp = Slerp([0.0, 1.0], Rotation.from_matrix(
+            np.stack([start.rotation, end.rotation])))
+        self.length = self.leave_length + self.spline_length + self.enter_length
+
+    def pose(self, s: float) -> pin.SE3:
+        """Spot pose (world) at s in [0, 1]."""
+        u = min(max(s, 0.0), 1.0) * self.length
+        if u <= self.leave_length and self.leave_length > 0.0:
+            return pin.SE3(self.start.rotation, self.start.translation + u * self.leave_normal)
+        entering_from = self.leave_length + self.spline_length
+        if u >= entering_from and self.enter_length > 0.0:
+            return pin.SE3(self.end.rotation, self.end.translation
+                           + (self.length - u) * self.enter_normal)
+        along = min(max(u - self.leave_length, 0.0), self.spline_length)
+        rotation = self.slerp([along / self.spline_length]).as_matrix()[0]
+        return pin.SE3(rotation, self.spline(along))
+
+    def phase(self, s: float) -> str:
+        """'leave', 'spline' or 'enter': the part of the path at s."""
+        u = s * self.length
+        if u < self.leave_length:
+            return "leave"
+        return "enter" if u > self.leave_length + self.spline_length else "spline"
+
+
+@dataclass(frozen=True)
+class ContactEvent:
+    """A contact change at sample `sample` of the interpolated path: 'created' or 'broken'
+    (geometrically), 'support_added' or 'support_removed' (only its stability)."""
+
+    sample: int
+    kind: str
+    contact: object
+
+
+@dataclass
+class InterpolatedPlan:
+    """Configurations through a whole plan.
+
+    q: (N, nq) samples; transition: (N,) index i of the transition (stance i -> i + 1) each
+    sample lies in (a stance's own sample belongs to the transition it ends; stance 0's to
+    transition 0); stance_samples: sample index of each stance's witness (i * n);
+    events: ContactEvents in sample order; transitions: per transition, a dict with the
+    moving spots, posture generations, iterations and seconds.
+    """
+
+    q: np.ndarray
+    transition: np.ndarray
+    stance_samples: np.ndarray
+    events: list
+    transitions: list = field(default_factory=list)
+
+    @property
+    def event_samples(self) -> np.ndarray:
+        """Sorted sample indices where some contact changes (rest points for timing)."""
+        return np.unique([event.sample for event in self.events])
+
+
+def _place(contact) -> tuple:
+    return (contact.spot, contact.surface, contact.x, contact.y, contact.theta)
+
+
+def spot_pose(generator: PostureGenerator, q: np.ndarray, spot: str) -> pin.SE3:
+    """World pose of spot frame `spot:<spot>` at q (generator's model)."""
+    pin.framesForwardKinematics(generator.model, generator.data, q)
+    return pin.SE3(generator.data.oMf[generator.model.getFrameId(f"spot:{spot}")])
+
+
+class TransitionPlanner:
+    """Interpolates the transitions of plans on one scene (see module docstring).
+
+    steps: n per transition; lift: m, the straight lines; criterion_weight: of the
+    ReferencePosture criterion; settings: of the posture generator (default: no time
+    budget, SAMPLE_COLLISION_MARGIN).
+    """
+
+    def __init__(self, robot, scene, collision=None, settings: PostureSettings | None = None,
+                 steps: int = 20, lift: float = LIFT, criterion_weight: float = 1e-2):
+        self.scene, self.steps, self.lift = scene, steps, lift
+        self.criterion_weight = criterion_weight
+        settings = settings or PostureSettings(time_budget=math.inf,
+                                               collision_margin=SAMPLE_COLLISION_MARGIN)
+        self.generator = _PathPostureGenerator(robot, scene, collision, settings)
+
+    def moving_paths(self, first, second) -> dict:
+        """{spot: (SpotPath, contact in first or None, contact in second or None)} for the
+        spots whose geometric contact differs between the two stances (Stance objects):
+        paths from the spot's pose at q1 to its pose at q2."""
+        places_1 = {c.spot: c for c in first.contacts}
+        places_2 = {c.spot: c for c in second.contacts}
+        paths = {}
+        for spot in sorted(set(places_1) | set(places_2)):
+            before, after = places_1.get(spot), places_2.get(spot)
+            if before is not None and after is not None and _place(before) == _place(after):
+                continue
+            paths[spot] = (SpotPath(spot_pose(self.generator, first.q, spot),
+                                    spot_pose(self.generator, second.q, spot),
+                                    self._normal(before), self._normal(after), self.lift),
+                           before, after)
+        return paths
+
+    def _normal(self, contact):
+        """Outward unit normal (world) of the contact's surface, None without contact."""
+        if contact is None:
+            return None
+        return self.scene.surfaces[contact.surface].pose.rotation[:, 2].copy()
+
+    def transition(self, index: int, first, second):
+        """(interior samples (n - 1, nq), statistics dict) from stance `first` to `second`;
+        raises InterpolationError when a sample fails."""
+        model, steps = self.generator.model, self.steps
+        second_places = {_place(c) for c in second.contacts}
+        common = tuple(c.with_stability(True) for c in first.contacts
+                       if _place(c) in second_places)
+        paths = self.moving_paths(first, second)
+        position_only = self._position_only(paths, common)
+        q, samples, iterations = first.q, [], 0
+        began = time.perf_counter()
+        for k in range(1, steps):
+            s = k / steps
+            held = tuple(SpotPose(spot, self._ignored_surface(path, before, after, s),
+                                  path.pose(s), spot in position_only)
+                         for spot, (path, before, after) in paths.items())
+            criterion = ReferencePosture(model, pin.interpolate(model, first.q, second.q, s),
+                                         self.criterion_weight)
+            result = self.generator.generate(common + held, q, criterion)
+            if not result.success:
+                raise InterpolationError(index, k, steps, result.reason)
+            q = result.q
+            iterations += result.iterations
+            samples.append(q)
+        statistics = {"moving": sorted(paths), "position_only": sorted(position_only),
+                      "generations": steps - 1,
+                      "iterations": iterations, "seconds": time.perf_counter() - began}
+        return np.reshape(samples, (steps - 1, model.nq)), statistics
+
+    def _position_only(self, paths, common) -> set:
+        """Moving spots on the same kinematic branch as another held spot with fewer than
+        6 DoFs between them (a 6-D pose relative to it is then generally unreachable)."""
+        model = self.generator.model
+
+        def joint(spot):
+            return model.frames[model.getFrameId(f"spot:{spot}")].parentJoint
+
+        def chain_dofs(moving, held):
+            upper, lower = sorted((moving, held), key=lambda j: len(model.supports[j]))
+            branch = list(model.supports[lower])
+            if upper not in branch:
+                return math.inf
+            return sum(model.joints[j].nv for j in branch[branch.index(upper) + 1:])
+
+        held = [joint(c.spot) for c in common] + [joint(spot) for spot in paths]
+        return {spot for spot in paths
+                if any(chain_dofs(joint(spot), j) < 6 for j in held if j != joint(spot))}
+
+    @staticmethod
+    def _ignored_surface(path, before, after, s) -> str:
+        """The surface the moving body may touch at s: the one it leaves on the first half
+        of its path, the one it enters on the second (or the only one it has)."""
+        if before is None:
+            return after.surface
+        if after is None:
+            return before.surface
+        return before.surface if path.phase(s) == "leave" or s < 0.5 else after.surface
+
+    def interpolate(self, plan) -> InterpolatedPlan:
+        """The whole plan as one sampled path (raises InterpolationError on a failure)."""
+        stances = plan.stances
+        results = [self.transition(index, first, second)
+                   for index, (first, second) in enumerate(zip(stances[:-1], stances[1:]))]
+        return assemble(stances, self.steps, results)
+
+
+def assemble(stances, steps: int, results) -> InterpolatedPlan:
+    """InterpolatedPlan from the stances and, per transition, the (interior samples,
+    statistics) of TransitionPlanner.transition."""
+    blocks, labels, events = [stances[0].q[None, :]], [0], []
+    for index, (first, second) in enumerate(zip(stances[:-1], stances[1:])):
+        blocks.extend([results[index][0], second.q[None, :]])
+        labels.extend([index] * steps)
+        events.extend(_events(index * steps, (index + 1) * steps, first, second))
+    return InterpolatedPlan(np.vstack(blocks), np.array(labels),
+                            np.arange(len(stances)) * steps, events,
+                            [statistics for _, statistics in results])
+
+
+def _events(start_sample: int, end_sample: int, first, second) -> list:
+    """Contact changes from stance `first` to `second`: geometric breaks at the start of
+    the transition, creations and stability changes at its end."""
+    places_2 = {_place(c): c for c in second.contacts}
+    places_1 = {_place(c): c for c in first.contacts}
+    events = [ContactEvent(start_sample, "broken", c) for key, c in places_1.items()
+              if key not in places_2]
+    for key, contact in places_2.items():
+        before = places_1.get(key)
+        if before is None:
+            events.append(ContactEvent(end_sample, "created", contact))
+        elif before.in_stability != contact.in_stability:
+            kind = "support_added" if contact.in_stability else "support_removed"
+            events.append(ContactEvent(end_sample, kind, contact))
+    return events
+

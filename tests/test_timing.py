@@ -1,0 +1,98 @@
+"""Time scaling of a sampled path: the paper's sinusoidal profile and the time-optimal one
+(joint speed and acceleration limits, rest at contact events), checked by sampling and
+finite differences on a Talos path with corners and a joint driven onto its limit."""
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
+from stance.robot import Robot
+
+SCALE = 0.5
+ACCELERATION = 3.0       # rad/s^2
+REST = [20, 35]          # contact events (the first and last samples rest too)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return Robot.load("talos")
+
+
+@pytest.fixture(scope="module")
+def samples(robot):
+    """51 samples: smooth joint motions plus noise (corners), the base drifting and
+    turning, one joint held at its upper limit over several samples."""
+    generator = np.random.default_rng(3)
+    q0 = robot.initial_configuration()
+    count = len(robot.limited_q_index)
+    amplitude = generator.uniform(0.05, 0.3, count)
+    frequency = generator.uniform(0.5, 2.0, count)
+    k = np.arange(51)[:, None]
+    joints = q0[robot.limited_q_index] + amplitude * np.sin(np.pi * frequency * k / 50) \
+        + generator.normal(0.0, 0.005, (51, count))
+    joints[:, 3] = np.minimum(q0[robot.limited_q_index[3]] + 0.02 * k[:, 0],
+                              robot.upper[3])
+    joints = np.clip(joints, robot.lower, robot.upper)
+    q = np.tile(q0, (51, 1))
+    q[:, robot.limited_q_index] = joints
+    for i in range(51):
+        base = pin.exp6(np.array([0.004 * i, 0.0, 0.0, 0.0, 0.0, 0.003 * i]))
+        placement = pin.XYZQUATToSE3(q0[:7]) * base
+        q[i, :7] = pin.SE3ToXYZQUAT(placement)
+    return q
+
+
+def sampled(robot, trajectory, step=5e-4):
+    times = np.arange(0.0, trajectory.duration, step)
+    states = [trajectory.sample(t) for t in times]
+    q = np.array([s[0] for s in states])
+    v = np.array([s[1] for s in states])
+    return times, q, v[:, robot.limited_v_index]
+
+
+@pytest.fixture(scope="module")
+def trajectories(robot, samples):
+    return {"sinusoidal": sinusoidal_trajectory(robot, samples, REST, SCALE),
+            "bounded": sinusoidal_trajectory(robot, samples, REST, SCALE, ACCELERATION),
+            "optimal": time_optimal_trajectory(robot, samples, REST, SCALE, ACCELERATION)}
+
+
+@pytest.mark.parametrize("name", ["sinusoidal", "bounded", "optimal"])
+def test_waypoints_speed_limits_and_rest_at_events(robot, samples, trajectories, name):
+    trajectory = trajectories[name]
+    times = trajectory.times
+    assert len(times) == len(samples) and np.all(np.diff(times) > 0) and times[0] == 0.0
+    assert times[-1] == pytest.approx(trajectory.duration)
+    for time, q in zip(times, samples):
+        assert np.allclose(pin.difference(robot.model, trajectory.sample(time)[0], q), 0.0,
+                           atol=1e-9)
+    _, q, v = sampled(robot, trajectory)
+    ratio = np.max(np.abs(v) / (SCALE * robot.velocity_limit))
+    assert ratio <= 1.0 + 1e-3
+    for event in [0, *REST, len(samples) - 1]:
+        assert np.max(np.abs(trajectory.sample(times[event])[1])) < 1e-9
+    middle = trajectory.sample(0.5 * (times[0] + times[REST[0]]))[1]
+    assert np.max(np.abs(middle)) > 1e-3
+    joints = q[:, robot.limited_q_index]
+    assert np.all(joints >= robot.lower - 1e-12) and np.all(joints <= robot.upper + 1e-12)
+
+
+def test_sinusoidal_duration_is_set_by_a_speed_limit(robot, trajectories):
+    _, _, v = sampled(robot, trajectories["sinusoidal"])
+    assert np.max(np.abs(v) / (SCALE * robot.velocity_limit)) > 0.99
+
+
+def test_time_optimal_respects_accelerations_and_is_not_longer(robot, trajectories):
+    optimal, bounded = trajectories["optimal"], trajectories["bounded"]
+    step = 5e-4
+    _, _, v = sampled(robot, optimal, step)
+    acceleration = np.diff(v, axis=0) / step
+    assert np.max(np.abs(acceleration)) <= ACCELERATION * 1.02
+    assert optimal.duration <= bounded.duration
+    # time-optimal: some limit is nearly active (speed or acceleration) most of the time
+    active = np.maximum(np.max(np.abs(v[1:]) / (SCALE * robot.velocity_limit), axis=1),
+                        np.max(np.abs(acceleration), axis=1) / ACCELERATION)
+    assert np.mean(active > 0.9) > 0.8
+    _, _, v_bounded = sampled(robot, bounded, step)
+    assert np.max(np.abs(np.diff(v_bounded, axis=0) / step)) <= ACCELERATION * 1.02
