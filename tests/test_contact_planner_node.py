@@ -227,7 +227,7 @@ def test_plan_on_flat_steps_succeeds_and_is_latched(planner, flat_steps):
     counts = [fb.nodes_expanded for _, fb in client.feedback]
     assert counts == sorted(counts)
     assert len(client.feedback) <= 5 * duration + 2
-    # The plan is the library's own (the planner is deterministic), converted: contact
+    # The plan is the library's own (the planner is deterministic to rounding), converted: contact
     # poses are the contact frames on their surfaces, witnesses are the stances' q.
     robot = Robot.load("talos")
     expected = plan_contacts(robot, PlanRequest(scene=flat_steps, ordered_sons=True)).plan
@@ -243,10 +243,11 @@ def test_plan_on_flat_steps_succeeds_and_is_latched(planner, flat_steps):
             assert contact_msg_.friction == surface.friction
             assert np.allclose(se3_from_pose_msg(contact_msg_.pose).homogeneous,
                                contact.contact_frame(surface).homogeneous, atol=1e-9)
-        assert _pose_values(stance_msg.witness_base_pose) == stance.q[:7].tolist()
+        # equal to rounding: the QP solver's last bits depend on memory alignment
+        assert np.allclose(_pose_values(stance_msg.witness_base_pose), stance.q[:7], atol=1e-9)
         joints = robot.actuated_positions(stance.q)
         assert list(stance_msg.witness_joints.name) == list(joints)
-        assert list(stance_msg.witness_joints.position) == list(joints.values())
+        assert np.allclose(stance_msg.witness_joints.position, list(joints.values()), atol=1e-9)
     # A subscriber that arrives after the plan still gets it (transient local, depth 1).
     late = BackgroundNode("late_plan_subscriber")
     received = []
