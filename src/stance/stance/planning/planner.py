@@ -54,7 +54,8 @@ class PlanRequest:
     time_budget: float = 900.0          # s of wall time at most
     seed: int = 0
     ordered_sons: bool = True           # section 2.8: one leaf per (spot, surface) pair
-    slope: float = 10.0                 # k of f_T (eq. 1): f units per m along T'
+    slope: float | None = None          # k of f_T (eq. 1), f units per m along T';
+                                        # None: the scene's potential_slope
 
 
 @dataclass
@@ -291,7 +292,8 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
         collision = CollisionModel(robot, scene)
     settings = settings or PostureSettings(time_budget=math.inf)
     generator = PostureGenerator(robot, scene, collision, settings)
-    trajectory = RoughTrajectory(robot.model, np.asarray(key_postures), k=request.slope)
+    slope = scene.potential_slope if request.slope is None else request.slope
+    trajectory = RoughTrajectory(robot.model, np.asarray(key_postures), k=slope)
     search = _Search(robot, request, generator, trajectory, progress, should_stop)
     search.criterion = PotentialCriterion(trajectory)
 

@@ -18,6 +18,9 @@ import pinocchio as pin
 import yaml
 
 
+DEFAULT_POTENTIAL_SLOPE = 10.0
+
+
 class SceneError(ValueError):
     """A scene file is malformed; the message names the offending field."""
 
@@ -116,6 +119,7 @@ class Scene:
     start_configuration: np.ndarray
     key_postures: np.ndarray
     goal: Goal
+    potential_slope: float = 10.0   # k of the potential f_T (f units per m along T')
     source: str = ""                # path of the scene file, for messages
 
 
@@ -171,7 +175,8 @@ class _SceneParser:
 
     def scene(self, document) -> Scene:
         fields = self.mapping(document, "", ("name", "robot", "surfaces", "obstacles", "spots",
-                                             "start", "key_postures", "goal"))
+                                             "start", "key_postures", "goal"),
+                              ("potential_slope",))
         name = self.string(fields["name"], "name")
         robot_spec = self.string(fields["robot"], "robot")
         if self.robot is None:
@@ -207,6 +212,9 @@ class _SceneParser:
         return Scene(name=name, robot=robot_spec, surfaces=surfaces, obstacles=obstacles,
                      spots=spots, start=start_contacts, start_configuration=start_configuration,
                      key_postures=key_postures, goal=self.goal(fields["goal"]),
+                     potential_slope=self.number(fields.get("potential_slope",
+                                                            DEFAULT_POTENTIAL_SLOPE),
+                                                 "potential_slope", positive=True),
                      source=self.source)
 
     # Elements.
