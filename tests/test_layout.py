@@ -10,6 +10,7 @@ from ament_index_python.packages import get_package_prefix, get_package_share_di
 @pytest.mark.parametrize("package, executable", [("pik_node", "pik_node"),
                                                  ("contact_planner_node", "contact_planner_node"),
                                                  ("stabilizer_gate_node", "stabilizer_gate_node"),
+                                                 ("trajectory_node", "trajectory_node"),
                                                  ("stance_tools", "stance")])
 def test_executables_are_where_ros2_run_looks(package, executable):
     path = os.path.join(get_package_prefix(package), "lib", package, executable)
@@ -24,7 +25,7 @@ def test_interface_definitions_are_installed_for_recorders():
 
 
 @pytest.mark.parametrize("package", ["pik_node", "contact_planner_node",
-                                     "stabilizer_gate_node"])
+                                     "stabilizer_gate_node", "trajectory_node"])
 def test_parameter_file_is_installed(package):
     share = get_package_share_directory(package)
     assert os.path.isfile(os.path.join(share, "config", f"{package}.yaml"))

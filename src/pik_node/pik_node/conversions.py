@@ -71,3 +71,30 @@ def joint_targets_from_msg(names, positions) -> dict:
     if not np.all(np.isfinite(values)):
         raise TargetError("posture target contains NaN or infinite positions")
     return dict(zip(names, values.tolist()))
+
+
+def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positions,
+                           tolerance: float = 1e-9) -> np.ndarray:
+    """A new configuration (nq): q with the free-flyer at base_pose (world; ignored for a
+    fixed-base robot) and the named actuated 1-DoF joints at positions (rad or m), which
+    must lie inside their limits (within tolerance). Raises TargetError naming the field."""
+    joints = joint_targets_from_msg(names, positions)
+    new_q = np.array(q, dtype=float)
+    if robot.floating_base:
+        try:
+            base = se3_from_pose_msg(base_pose)
+        except TargetError as error:
+            raise TargetError(f"base_pose: {error}") from None
+        new_q[:7] = pin.SE3ToXYZQUAT(base)
+    limited = dict(zip(robot.limited_joint_names, zip(robot.lower, robot.upper)))
+    for name, value in joints.items():
+        joint = robot.model.joints[robot.model.getJointId(name)] \
+            if name in robot.actuated_joint_names else None
+        if joint is None or joint.nq != 1:
+            raise TargetError(f"joints: unknown actuated 1-DoF joint {name!r}")
+        lower, upper = limited.get(name, (-np.inf, np.inf))
+        if not lower - tolerance <= value <= upper + tolerance:
+            raise TargetError(f"joints: {name} = {value:.4f} outside its limits "
+                              f"[{lower:.4f}, {upper:.4f}]")
+        new_q[joint.idx_q] = value
+    return new_q

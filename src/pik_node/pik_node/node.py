@@ -16,6 +16,9 @@ Topics and services (QoS in parentheses):
   pub  /robot_description         std_msgs/String, URDF (reliable, transient local)
   srv  /pik/set_stack             stance_msgs/SetStack
   srv  /pik/set_task_enabled      stance_msgs/SetTaskEnabled
+  srv  /pik/set_configuration     stance_msgs/SetConfiguration: jump to a configuration
+                                  (base pose, joints inside their limits); every task
+                                  then holds its value there
 """
 
 from __future__ import annotations
@@ -43,11 +46,11 @@ from stance.pik import HIERARCHIES, demo_stack_file
 from stance.stack import parse_stack_yaml
 from stance.swing import LimitFileError, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
-from stance_msgs.srv import SetStack, SetTaskEnabled
+from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
 
-from .conversions import (check_world_frame, joint_targets_from_msg, se3_from_pose_msg,
-                          spec_from_msg)
+from .conversions import (check_world_frame, configuration_from_msg, joint_targets_from_msg,
+                          se3_from_pose_msg, spec_from_msg)
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -92,6 +95,8 @@ class PikNode(Node):
         self._description_pub = description_pub
         self.create_service(SetStack, "/pik/set_stack", self._on_set_stack)
         self.create_service(SetTaskEnabled, "/pik/set_task_enabled", self._on_set_enabled)
+        self.create_service(SetConfiguration, "/pik/set_configuration",
+                            self._on_set_configuration)
         self._sync_target_subscriptions()
         self._joint_names = [name for name, jid in zip(self.robot.actuated_joint_names,
                                                        self.robot.actuated_joint_ids)
@@ -215,6 +220,28 @@ class PikNode(Node):
             return response
         response.success = True
         response.message = f"task {request.name!r} {'enabled' if request.enabled else 'disabled'}"
+        return response
+
+    def _on_set_configuration(self, request, response):
+        """Jump to the requested configuration and hold every task's value there (its
+        target becomes its current value), all under the lock: one IK step sees either
+        the old state or the new one."""
+        try:
+            with self._lock:
+                q = configuration_from_msg(self.robot, self.q, request.base_pose,
+                                           request.joints.name, request.joints.position)
+                self.solver.compute_kinematics(q, com=True)
+                for task in self.solver.tasks.values():
+                    task.hold(self.robot, q)
+                self.q = q
+        except TargetError as error:
+            response.success, response.message = False, f"configuration rejected: {error}"
+            self._reject(response.message)
+            return response
+        response.success = True
+        response.message = (f"configuration set ({len(request.joints.name)} joints named), "
+                            f"{len(self.solver.tasks)} tasks hold their values")
+        self.get_logger().info(response.message)
         return response
 
     def _reject(self, reason: str):

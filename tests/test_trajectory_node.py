@@ -1,0 +1,305 @@
+"""trajectory_node over DDS with pik_node, both as processes: a flat_steps plan is
+interpolated, timed and executed (joint trajectory with increasing times inside the joint
+limits, active stances in order and stamped when their transition ends, pik_node's joints
+following the trajectory and ending on the last witness, status done); bad plans fail with
+their reason and the node lives on; a plan arriving mid-execution takes over at the end of
+the current transition; the time-optimal timing is the library's; bad parameters end the
+node with exit code 1."""
+
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+from conftest import wait_until
+from contact_planner_node.conversions import stance_plan_msg
+from helpers.probe import RELIABLE, BackgroundNode
+from pik_node.node import LATCHED
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
+from sensor_msgs.msg import JointState
+from stance import Robot
+from stance.execution.interpolation import TransitionPlanner
+from stance.execution.timing import time_optimal_trajectory
+from stance.planning.collision import CollisionModel
+from stance.planning.contacts import Plan
+from stance.planning.planner import PlanRequest, plan_contacts
+from stance.planning.scene import load_scene
+from stance_msgs.msg import ContactStance, StancePlan
+from stance_tools.processes import ProcessGroup
+from std_msgs.msg import String
+from trajectory_msgs.msg import JointTrajectory
+
+STEPS = 10               # samples_per_transition
+JOINT_TOLERANCE = 0.05   # rad: pik_node's joints against the plan's last witness
+TRACKING_TOLERANCE = 0.15  # rad: pik_node's joints against the trajectory while it runs
+STANCES = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+HISTORY = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class TrajectoryProbe(BackgroundNode):
+    """Publishes plans; collects trajectories, (receipt s, active stance), statuses and the
+    latest joint state."""
+
+    def __init__(self, name="trajectory_probe", domain_id=None):
+        super().__init__(name, domain_id)
+        self.lock = threading.Lock()
+        self.trajectories, self.stances, self.statuses = [], [], []
+        self.joint_state = None
+        self.joint_log = []   # (stamp s, positions) of every joint state
+        self.node.create_subscription(JointTrajectory, "/trajectory/joint_trajectory",
+                                      self._keep(self.trajectories), LATCHED)
+        self.node.create_subscription(ContactStance, "/trajectory/active_stance",
+                                      self._on_stance, STANCES)
+        self.node.create_subscription(String, "/trajectory/status",
+                                      self._keep(self.statuses), HISTORY)
+        self.node.create_subscription(JointState, "/joint_states", self._on_joints, RELIABLE)
+        self.plan_pub = self.node.create_publisher(StancePlan, "/contact_planner/plan", LATCHED)
+        self.start_spinning()
+
+    def _keep(self, store):
+        def keep(msg):
+            with self.lock:
+                store.append(msg)
+        return keep
+
+    def _on_stance(self, msg):
+        with self.lock:
+            self.stances.append((time.time(), msg))
+
+    def _on_joints(self, msg):
+        with self.lock:
+            self.joint_state = msg
+            self.joint_log.append((stamp_seconds(msg), np.array(msg.position)))
+
+    def tracking_error(self, trajectory):
+        """Max |joint - trajectory| (rad) over the joint states stamped while the
+        trajectory runs (trajectory linear between its points, same joint order)."""
+        start = stamp_seconds(trajectory)
+        times = np.array([seconds(p.time_from_start) for p in trajectory.points])
+        positions = np.array([p.positions for p in trajectory.points])
+        with self.lock:
+            log = [(t - start, q) for t, q in self.joint_log if 0.0 <= t - start <= times[-1]]
+        assert len(log) > 100 * times[-1], "too few joint states during the trajectory"
+        return max(np.max(np.abs(q - [np.interp(t, times, column) for column in positions.T]))
+                   for t, q in log)
+
+    def counts(self):
+        with self.lock:
+            return len(self.trajectories), len(self.stances), len(self.statuses)
+
+    def since(self, counts):
+        """(trajectories, stances, statuses) received after counts()."""
+        with self.lock:
+            return (self.trajectories[counts[0]:], self.stances[counts[1]:],
+                    [s.data for s in self.statuses[counts[2]:]])
+
+    def publish_plan(self, msg):
+        wait_until(lambda: self.plan_pub.get_subscription_count() > 0, 30,
+                   what="trajectory_node's plan subscription")
+        self.plan_pub.publish(msg)
+
+    def wait_status(self, counts, state, timeout):
+        """Every status since counts, once one in `state` arrived."""
+        def arrived():
+            statuses = self.since(counts)[2]
+            return statuses if any(s.startswith(f"{state}:") for s in statuses) else None
+        return wait_until(arrived, timeout, what=f"trajectory status {state!r}")
+
+    def joint_error(self, robot, q):
+        """Max |joint - q's joint| (rad) over pik_node's latest joint state."""
+        with self.lock:
+            state = self.joint_state
+        if state is None:
+            return np.inf
+        expected = robot.actuated_positions(q)
+        return max(abs(value - expected[name]) for name, value in zip(state.name,
+                                                                       state.position))
+
+
+@pytest.fixture(scope="module")
+def flat():
+    """(robot, scene, plan) of flat_steps (the library's own planner)."""
+    robot = Robot.load("talos")
+    scene = load_scene("flat_steps", robot)
+    outcome = plan_contacts(robot, PlanRequest(scene=scene, ordered_sons=True))
+    assert outcome.success, outcome.message
+    return robot, scene, outcome.plan
+
+
+@pytest.fixture(scope="module")
+def graph(tmp_path_factory):
+    """pik_node and trajectory_node (n = STEPS) for the module, and the probe."""
+    group = ProcessGroup(tmp_path_factory.mktemp("trajectory"))
+    pik = group.start("pik_node", name="pik_node")
+    node = group.start("trajectory_node", "--ros-args", "-p",
+                       f"samples_per_transition:={STEPS}", name="trajectory_node")
+    probe = TrajectoryProbe()
+    try:
+        wait_until(lambda: probe.joint_state is not None and probe.statuses
+                   or node.poll() is not None or pik.poll() is not None, 60,
+                   what="pik_node's joint states and trajectory_node's status")
+        assert node.poll() is None, node.log_path.read_text()
+        assert pik.poll() is None, pik.log_path.read_text()
+        yield node, probe
+    finally:
+        probe.close()
+        group.stop_all()
+        print(node.log_path.read_text())
+
+
+def plan_msg(robot, scene, plan):
+    """StancePlan stamped now (the node ignores a plan equal to the last one)."""
+    return stance_plan_msg(plan, scene, robot, Time(nanoseconds=time.time_ns()).to_msg())
+
+
+def seconds(time_msg):
+    return time_msg.sec + time_msg.nanosec * 1e-9
+
+
+def stamp_seconds(msg):
+    return seconds(msg.header.stamp)
+
+
+def test_flat_steps_plan_is_executed_through_pik_node(graph, flat):
+    node, probe = graph
+    robot, scene, plan = flat
+    count = len(plan.stances)
+    counts = probe.counts()
+    probe.publish_plan(plan_msg(robot, scene, plan))
+    statuses = probe.wait_status(counts, "done", 90)
+    states = [status.split(":")[0] for status in statuses]
+    assert states[:3] == ["interpolating", "executing", "done"], statuses
+
+    (trajectory,), stances, _ = probe.since(counts)
+    assert len(trajectory.points) == (count - 1) * STEPS + 1
+    assert list(trajectory.joint_names) == list(robot.actuated_positions(plan.stances[0].q))
+    times = np.array([seconds(p.time_from_start) for p in trajectory.points])
+    assert times[0] == 0.0 and np.all(np.diff(times) > 0.0)
+    positions = np.array([p.positions for p in trajectory.points])
+    index = [list(trajectory.joint_names).index(n) for n in robot.limited_joint_names]
+    assert np.all(positions[:, index] >= robot.lower - 1e-6)
+    assert np.all(positions[:, index] <= robot.upper + 1e-6)
+    assert np.allclose(positions[-1], list(robot.actuated_positions(plan.stances[-1].q)
+                                           .values()), atol=1e-6)
+    assert np.abs(trajectory.points[-1].velocities).max() < 1e-6
+
+    assert [msg.index for _, msg in stances] == list(range(count))
+    stamps = np.array([stamp_seconds(msg) for _, msg in stances])
+    assert np.all(np.diff(stamps) > 0.0)
+    assert stamps[-1] - stamps[0] == pytest.approx(times[-1], abs=1e-3)
+    assert stamps[0] == pytest.approx(stamp_seconds(trajectory), abs=1e-6)
+    # stance k is announced when the transition into it starts, i.e. when the transition
+    # into stance k - 1 ends (late by the node's loop period and load at most)
+    lateness = np.array([at for at, _ in stances])[1:] - stamps[:-1]
+    assert np.median(np.abs(lateness)) < 0.05 and np.max(np.abs(lateness)) < 0.5, lateness
+
+    wait_until(lambda: probe.joint_error(robot, plan.stances[-1].q) < JOINT_TOLERANCE, 20,
+               what="pik_node's joints on the last witness")
+    # pik_node followed the motion itself, not only its end
+    assert list(probe.joint_state.name) == list(trajectory.joint_names)
+    assert probe.tracking_error(trajectory) < TRACKING_TOLERANCE
+    assert node.poll() is None
+
+
+@pytest.mark.parametrize("case, words", [
+    ("empty", ["stances", "at least 2"]),
+    ("unknown surface", ["stances[1].contacts[0].surface", "no_such_surface"]),
+    ("unknown scene", ["scene", "no_such_scene"]),
+    ("missing joint", ["stances[0].witness_joints", "missing"]),
+])
+def test_bad_plan_fails_with_its_reason_and_the_node_lives_on(graph, flat, case, words):
+    node, probe = graph
+    robot, scene, plan = flat
+    msg = plan_msg(robot, scene, plan)
+    if case == "empty":
+        msg.stances = []
+    elif case == "unknown surface":
+        msg.stances[1].contacts[0].surface = "no_such_surface"
+    elif case == "unknown scene":
+        msg.scene = "no_such_scene"
+    else:
+        msg.stances[0].witness_joints.name.pop()
+        msg.stances[0].witness_joints.position.pop()
+    counts = probe.counts()
+    probe.publish_plan(msg)
+    statuses = probe.wait_status(counts, "failed", 30)
+    failure = next(s for s in statuses if s.startswith("failed:"))
+    for word in words:
+        assert word in failure, (word, failure)
+    trajectories, stances, _ = probe.since(counts)
+    assert not trajectories and not stances
+    assert node.poll() is None
+
+
+def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat):
+    node, probe = graph
+    robot, scene, plan = flat
+    short = Plan(plan.scene, plan.robot, plan.stances[:3])
+    counts = probe.counts()
+    probe.publish_plan(plan_msg(robot, scene, plan))
+    wait_until(lambda: len(probe.since(counts)[1]) >= 4, 60, what="stance 3 announced")
+    probe.publish_plan(plan_msg(robot, scene, short))
+    statuses = probe.wait_status(counts, "done", 90)
+    assert any("superseded" in status for status in statuses), statuses
+    trajectories, stances, _ = probe.since(counts)
+    indices = [msg.index for _, msg in stances]
+    restart = indices.index(0, 1)
+    assert indices[:restart] == list(range(restart)) and 4 <= restart < len(plan.stances)
+    assert indices[restart:] == [0, 1, 2]
+    assert len(trajectories) == 2 and len(trajectories[1].points) == 2 * STEPS + 1
+    # the first plan's last announced transition ran to its end before the switch
+    last_end = stamp_seconds(stances[restart - 1][1])
+    assert stances[restart][0] >= last_end - 0.05
+    wait_until(lambda: probe.joint_error(robot, short.stances[-1].q) < JOINT_TOLERANCE, 20,
+               what="pik_node's joints on the new plan's last witness")
+    assert node.poll() is None
+
+
+def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(processes, flat):
+    """Its own pik_node and trajectory_node in another DDS domain (the module's pair would
+    take the plan too)."""
+    robot, scene, plan = flat
+    short = Plan(plan.scene, plan.robot, plan.stances[:3])
+    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    processes.start("pik_node", name="pik_node", env=domain)
+    node = processes.start("trajectory_node", "--ros-args", "-p", "timing:=time_optimal",
+                           "-p", f"samples_per_transition:={STEPS}", name="trajectory_node",
+                           env=domain)
+    probe = TrajectoryProbe("time_optimal_probe", int(domain["ROS_DOMAIN_ID"]))
+    try:
+        counts = probe.counts()
+        probe.publish_plan(plan_msg(robot, scene, short))
+        probe.wait_status(counts, "done", 60)
+        (trajectory,), _, statuses = probe.since(counts)
+        assert any(s.startswith("executing:") and "time_optimal" in s for s in statuses)
+        path = TransitionPlanner(robot, scene, CollisionModel(robot, scene),
+                                 steps=STEPS).interpolate(short)
+        expected = time_optimal_trajectory(robot, path.q, path.event_samples, 0.5, 4.0)
+        assert seconds(trajectory.points[-1].time_from_start) == \
+            pytest.approx(expected.duration, rel=1e-3)
+        wait_until(lambda: probe.joint_error(robot, short.stances[-1].q) < JOINT_TOLERANCE,
+                   20, what="pik_node's joints on the last witness")
+        # SIGINT while a plan executes: a clean stop, exit code 0
+        counts = probe.counts()
+        probe.publish_plan(plan_msg(robot, scene, plan))
+        probe.wait_status(counts, "executing", 30)
+        os.killpg(node.pid, signal.SIGINT)
+        assert node.wait(timeout=10) == 0, node.log_path.read_text()
+    finally:
+        probe.close()
+
+
+@pytest.mark.parametrize("parameter, reason", [
+    ("timing:=fastest", "timing"),
+    ("rate:=0.0", "rate"),
+    ("robot:=no_such_robot", "unknown example-robot-data robot"),
+])
+def test_bad_startup_parameter_is_refused_with_its_reason(processes, parameter, reason):
+    node = processes.start("trajectory_node", "--ros-args", "-p", parameter,
+                           name="trajectory_node")
+    assert node.wait(timeout=60) == 1
+    assert reason in node.log_path.read_text()
