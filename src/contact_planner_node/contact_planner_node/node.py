@@ -18,13 +18,11 @@ Action, topics (QoS in parentheses):
 
 from __future__ import annotations
 
-import signal
 import sys
 import threading
 import time
 from dataclasses import asdict
 
-import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -32,7 +30,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
+from pik_node.node import run_node
 from stance import Robot, RobotModelError
 from stance.planning.planner import CANCELLED, PlanOutcome, PlanProgress
 from stance_msgs.action import PlanContacts
@@ -178,35 +176,12 @@ class FeedbackRelay:
             best_potential=float(progress.best_potential), elapsed=float(progress.elapsed)))
 
 
-def spin_until_signal(node: Node, executor) -> None:
-    """Spin node on executor until SIGINT or SIGTERM, then return so the caller shuts
-    down in order."""
-    stop = threading.Event()
-    for signal_number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signal_number, lambda *_: stop.set())
-    executor.add_node(node)
-    while not stop.is_set() and rclpy.ok():
-        executor.spin_once(timeout_sec=0.1)
-
-
 def main(args=None):
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = ContactPlannerNode()
-    except (RobotModelError, ParameterException, OSError, ValueError) as error:
-        print(f"contact_planner_node: cannot start: {error}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 1
     # Threads: one runs the plan, the others serve goal, cancel and result requests.
-    executor = MultiThreadedExecutor(num_threads=4)
-    try:
-        spin_until_signal(node, executor)
-    finally:
-        node.stop_planning()
-        executor.shutdown(timeout_sec=10.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node("contact_planner_node", ContactPlannerNode,
+                    (RobotModelError, ParameterException, OSError, ValueError), args,
+                    stop=ContactPlannerNode.stop_planning,
+                    make_executor=lambda: MultiThreadedExecutor(num_threads=4))
 
 
 if __name__ == "__main__":

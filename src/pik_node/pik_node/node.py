@@ -344,37 +344,51 @@ def _header(stamp, frame_id=""):
     return Header(stamp=stamp, frame_id=frame_id)
 
 
-def spin_until_signal(node: Node) -> None:
-    """Spin until SIGINT or SIGTERM, then return so the caller shuts down in order."""
+def spin_until_signal(node: Node, executor) -> None:
+    """Spin `node` on `executor` until SIGINT or SIGTERM, then return so the caller shuts
+    down in order."""
     stop = threading.Event()
     for signal_number in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signal_number, lambda *_: stop.set())
-    executor = SingleThreadedExecutor()
     executor.add_node(node)
     while not stop.is_set() and rclpy.ok():
         executor.spin_once(timeout_sec=0.1)
-    executor.shutdown()
+
+
+def run_node(label: str, make_node, startup_errors: tuple, args=None, start=None, stop=None,
+             make_executor=SingleThreadedExecutor) -> int:
+    """The entry point of every Stance node: build the node (exit 1 with the reason on
+    `startup_errors`), call start(node), spin on make_executor() until SIGINT or SIGTERM,
+    call stop(node) (so work in executor callbacks ends), shut down the executor and rclpy;
+    exit 0."""
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        node = make_node()
+    except startup_errors as error:
+        print(f"{label}: cannot start: {error}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 1
+    if start is not None:
+        start(node)
+    executor = make_executor()
+    try:
+        spin_until_signal(node, executor)
+    finally:
+        if stop is not None:
+            stop(node)
+        executor.shutdown(timeout_sec=10.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 def main(args=None):
     # Two Python threads share the GIL: with the default 5 ms switch interval either one can
     # hold the other for longer than a control period.
     sys.setswitchinterval(0.0005)
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = PikNode()
-    except (RobotModelError, StackError, LimitFileError, OSError, ValueError) as error:
-        print(f"pik_node: cannot start: {error}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 1
-    node.start_loop()
-    try:
-        spin_until_signal(node)
-    finally:
-        node.stop_loop()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node("pik_node", PikNode,
+                    (RobotModelError, StackError, LimitFileError, OSError, ValueError), args,
+                    start=PikNode.start_loop, stop=PikNode.stop_loop)
 
 
 if __name__ == "__main__":

@@ -28,14 +28,12 @@ from __future__ import annotations
 import math
 import sys
 
-import rclpy
 from contact_planner_node.conversions import contact_from_msg
 from pik_node.conversions import se3_from_pose_msg
-from pik_node.node import LATCHED, RELIABLE, spin_until_signal
+from pik_node.node import LATCHED, RELIABLE, run_node
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 from rclpy.time import Time
 from stance.execution.stabilizer import LearnedSurfaces, StabilizerGate, Transition, switch
 from stance.planning.scene import load_scene
@@ -167,19 +165,8 @@ def _when_and_how(event) -> tuple | None:
 
 
 def main(args=None):
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = StabilizerGateNode()
-    except (ParameterException, OSError, ValueError) as error:
-        print(f"stabilizer_gate_node: cannot start: {error}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 1
-    try:
-        spin_until_signal(node)
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node("stabilizer_gate_node", StabilizerGateNode,
+                    (ParameterException, OSError, ValueError), args)
 
 
 if __name__ == "__main__":

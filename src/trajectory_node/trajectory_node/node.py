@@ -46,15 +46,13 @@ import time
 import traceback
 
 import pinocchio as pin
-import rclpy
 from contact_planner_node.conversions import actuated_q_index
 from geometry_msgs.msg import PointStamped, PoseStamped
-from pik_node.node import LATCHED, RELIABLE, TARGET_TYPES, fill_pose_msg, spin_until_signal
+from pik_node.node import LATCHED, RELIABLE, TARGET_TYPES, fill_pose_msg, run_node
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import InterpolationError, TransitionPlanner
@@ -343,21 +341,9 @@ class TrajectoryNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = TrajectoryNode()
-    except (ParameterException, RobotModelError, OSError, ValueError) as error:
-        print(f"trajectory_node: cannot start: {error}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 1
-    node.start_worker()
-    try:
-        spin_until_signal(node)
-    finally:
-        node.stop_worker()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node("trajectory_node", TrajectoryNode,
+                    (ParameterException, RobotModelError, OSError, ValueError), args,
+                    start=TrajectoryNode.start_worker, stop=TrajectoryNode.stop_worker)
 
 
 if __name__ == "__main__":
