@@ -56,6 +56,19 @@ def test_same_request_gives_the_same_plan(robot, scene, outcome):
         np.testing.assert_allclose(ours.q, theirs.q, atol=1e-9)
 
 
+def test_a_worker_pool_gives_the_same_plan(robot, scene, outcome):
+    """Sons generated in parallel processes are taken in the sequential order."""
+    pooled = plan_contacts(robot, PlanRequest(scene=scene, max_nodes=200, time_budget=120.0,
+                                              workers=2))
+    assert pooled.success
+    assert [[(c.spot, c.surface, c.in_stability) for c in s.contacts]
+            for s in pooled.plan.stances] == \
+        [[(c.spot, c.surface, c.in_stability) for c in s.contacts]
+         for s in outcome.plan.stances]
+    for ours, theirs in zip(pooled.plan.stances, outcome.plan.stances):
+        np.testing.assert_allclose(ours.q, theirs.q, atol=1e-7)
+
+
 def test_ordered_sons_need_fewer_posture_generations_per_node(robot, scene, outcome):
     """Section 2.8: one leaf per (spot, surface) pair instead of every son at once."""
     unordered = plan_contacts(robot, PlanRequest(scene=scene, max_nodes=200, time_budget=120.0,

@@ -15,6 +15,8 @@ def add_plan_arguments(parser) -> None:
     parser.add_argument("--unordered-budget", type=float, default=300.0,
                         help="s for the run without ordered sons (compared per expanded "
                              "node); 0 skips it")
+    parser.add_argument("--workers", type=int, default=2,
+                        help="processes generating a node's first sons together")
     parser.add_argument("--plan", default=None, help="write the ordered run's plan (JSON)")
     parser.add_argument("--json", default=None, help="write the figures (JSON)")
 
@@ -45,7 +47,8 @@ def run_plan(args) -> int:
     figures = {"scene": args.scene}
     with threadpool_limits(1):
         began = time.perf_counter()
-        outcome, scene, robot = plan_scene(args.scene, args.max_nodes, args.time_budget, True)
+        outcome, scene, robot = plan_scene(args.scene, args.max_nodes, args.time_budget, True,
+                                           workers=args.workers)
         seconds = time.perf_counter() - began
         _print_run("ordered sons (2.8)", outcome, seconds)
         figures["ordered"] = dict(outcome.statistics, reason=outcome.reason, wall_time=seconds)
@@ -59,7 +62,8 @@ def run_plan(args) -> int:
         budget = args.unordered_budget
         if budget > 0:
             began = time.perf_counter()
-            unordered, _, _ = plan_scene(args.scene, args.max_nodes, budget, False)
+            unordered, _, _ = plan_scene(args.scene, args.max_nodes, budget, False,
+                                         workers=args.workers)
             seconds = time.perf_counter() - began
             _print_run("every son generated", unordered, seconds)
             figures["unordered"] = dict(unordered.statistics, reason=unordered.reason,

@@ -20,11 +20,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--time-budget", type=float, default=900.0, help="seconds at most")
     parser.add_argument("--unordered", action="store_true",
                         help="generate every son of every pair (no section 2.8 ordering)")
+    parser.add_argument("--workers", type=int, default=2,
+                        help="processes generating a node's first sons together")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
 def plan_scene(scene_spec: str, max_nodes: int, time_budget: float, ordered: bool,
-               progress=None):
+               progress=None, workers: int = 1):
     """(PlanOutcome, scene, robot) for a shipped scene name or a scene file."""
     from stance.planning.planner import PlanRequest, plan_contacts
     from stance.planning.scene import load_scene
@@ -33,7 +35,7 @@ def plan_scene(scene_spec: str, max_nodes: int, time_budget: float, ordered: boo
     scene = load_scene(scene_spec)
     robot = Robot.load(scene.robot)
     request = PlanRequest(scene=scene, max_nodes=max_nodes, time_budget=time_budget,
-                          ordered_sons=ordered)
+                          ordered_sons=ordered, workers=workers)
     return plan_contacts(robot, request, progress=progress), scene, robot
 
 
@@ -56,7 +58,7 @@ def run(args) -> int:
     with threadpool_limits(1):
         try:
             outcome, _, _ = plan_scene(args.scene, args.max_nodes, args.time_budget,
-                                       not args.unordered, report)
+                                       not args.unordered, report, args.workers)
         except SceneError as error:
             print(f"stance plan: bad scene: {error}", file=sys.stderr)
             return 2

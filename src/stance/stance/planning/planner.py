@@ -56,6 +56,7 @@ class PlanRequest:
     ordered_sons: bool = True           # section 2.8: one leaf per (spot, surface) pair
     slope: float | None = None          # k of f_T (eq. 1), f units per m along T';
                                         # None: the scene's potential_slope
+    workers: int = 1                    # processes generating a node's first sons together
 
 
 @dataclass
@@ -139,15 +140,22 @@ class _Search:
         self.start_time = time.perf_counter()
         self.stopped_reason = None
         self.posture_calls = []     # (kind, success, seconds) of every posture generation
+        self.pool = None            # worker processes (request.workers > 1)
+        self.prefetched = {}        # call key -> PostureResult computed by the pool
 
     # --------------------------------------------------------------- posture calls
     def generate(self, node, free=None, removed=None):
         """Posture for node's supporting contacts (+ free being placed, or with `removed`
-        out of stability) from node's witness with f_T as criterion; None on failure."""
+        out of stability) from node's witness with f_T as criterion; None on failure.
+        Results computed ahead by `prefetch` are used when there is one."""
         if self._must_stop():
             return None
-        contacts = tuple(c.with_stability(c != removed) for c in node.supporting)
-        result = self.generator.generate(contacts, node.q, self.criterion, free=free)
+        key = _call_key(free, removed)
+        if key in self.prefetched:
+            result = self.prefetched.pop(key)
+        else:
+            result = self.generator.generate(_call_contacts(node, removed), node.q,
+                                             self.criterion, free=free)
         kind = "add" if free is not None else "remove"
         self.posture_calls.append((kind, result.success, result.seconds))
         return result if result.success else None
@@ -190,22 +198,34 @@ class _Search:
     # --------------------------------------------------------------- expansion
     def expand(self, node):
         """Generate node's sons (module docstring)."""
+        from .posture import FreeContact
         supporting = node.supporting
-        if len(supporting) > 1:
-            for contact in supporting:
-                result = self.generate(node, removed=contact)
-                if result is not None:
-                    self.add_leaf(result.contacts, result.q, node)
+        removals = supporting if len(supporting) > 1 else ()
         used_spots = {c.spot for c in supporting}
-        for spot in self.scene.spots.values():
-            if spot.name in used_spots:
-                continue
-            for surface in self.scene.surfaces.values():
-                if spot.surfaces and surface.name not in spot.surfaces:
-                    continue
-                pair = _PairSons(node, spot.name, surface.name,
-                                 [initial_volume(surface.polygon)])
-                self._pair_sons(pair, node)
+        pairs = [_PairSons(node, spot.name, surface.name, [initial_volume(surface.polygon)])
+                 for spot in self.scene.spots.values() if spot.name not in used_spots
+                 for surface in self.scene.surfaces.values()
+                 if not spot.surfaces or surface.name in spot.surfaces]
+        self.prefetch(node, removals, [FreeContact(pair.spot, pair.surface, pair.volumes[0])
+                                       for pair in pairs])
+        for contact in removals:
+            result = self.generate(node, removed=contact)
+            if result is not None:
+                self.add_leaf(result.contacts, result.q, node)
+        for pair in pairs:
+            self._pair_sons(pair, node)
+
+    def prefetch(self, node, removals, frees):
+        """With a worker pool: generate the node's removal sons and each pair's first son
+        at once, in parallel; `generate` then takes these results in its usual order."""
+        if self.pool is None or self._must_stop():
+            return
+        calls = [(None, removed) for removed in removals] + [(free, None) for free in frees]
+        results = self.pool.map(_pooled_generate,
+                                [(_call_contacts(node, removed), node.q, free)
+                                 for free, removed in calls])
+        self.prefetched = {_call_key(free, removed): result
+                           for (free, removed), result in zip(calls, results)}
 
     def _pair_sons(self, pair, node):
         """Ordered mode: the pair's next son only; otherwise up to MAX_SONS_PER_PAIR."""
@@ -246,8 +266,40 @@ class _Search:
         return goal.reached(position)
 
     def snapshot(self):
-        return PlanProgress(self.expanded, self.generator.calls, self.best_potential,
+        return PlanProgress(self.expanded, len(self.posture_calls), self.best_potential,
                             time.perf_counter() - self.start_time)
+
+
+def _call_contacts(node, removed):
+    """The contacts of a posture call from `node`: its supporting ones, `removed` (if any)
+    out of stability."""
+    return tuple(c.with_stability(c != removed) for c in node.supporting)
+
+
+def _call_key(free, removed):
+    if free is not None:
+        return ("add", free.spot, free.surface, id(free.volume))
+    return ("remove", removed)
+
+
+_WORKER = {}   # in a pool process: its posture generator and criterion
+
+
+def _start_worker(robot_spec, scene, key_postures, slope, settings):
+    from ..robot import Robot
+    from .collision import CollisionModel
+    from .posture import PostureGenerator, PotentialCriterion
+    from .potential import RoughTrajectory
+    robot = Robot.load(robot_spec)
+    _WORKER["generator"] = PostureGenerator(robot, scene, CollisionModel(robot, scene),
+                                            settings)
+    _WORKER["criterion"] = PotentialCriterion(RoughTrajectory(robot.model, key_postures,
+                                                              k=slope))
+
+
+def _pooled_generate(call):
+    contacts, q, free = call
+    return _WORKER["generator"].generate(contacts, q, _WORKER["criterion"], free=free)
 
 
 def _check_goal(robot, goal):
@@ -274,9 +326,8 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
     a CollisionModel to reuse (built from the scene otherwise); settings: PostureSettings.
     """
     from .collision import CollisionModel
-    from .contacts import Contact, Stance
-    from .posture import PostureGenerator, PostureSettings, PotentialCriterion, \
-        ReferencePosture
+    from .contacts import Contact
+    from .posture import PostureGenerator, PostureSettings, PotentialCriterion
     from .potential import RoughTrajectory
 
     scene = request.scene
@@ -296,6 +347,24 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
     trajectory = RoughTrajectory(robot.model, np.asarray(key_postures), k=slope)
     search = _Search(robot, request, generator, trajectory, progress, should_stop)
     search.criterion = PotentialCriterion(trajectory)
+    if request.workers > 1:
+        import concurrent.futures
+        import multiprocessing
+        search.pool = concurrent.futures.ProcessPoolExecutor(
+            request.workers, mp_context=multiprocessing.get_context("spawn"),
+            initializer=_start_worker,
+            initargs=(scene.robot, scene, np.asarray(key_postures), slope, settings))
+    try:
+        return _run_search(search, generator, robot, request, scene, start, key_postures)
+    finally:
+        if search.pool is not None:
+            search.pool.shutdown(cancel_futures=True)
+
+
+def _run_search(search, generator, robot, request, scene, start, key_postures):
+    """The search proper, from the start posture (plan_contacts)."""
+    from .contacts import Stance
+    from .posture import ReferencePosture
 
     start_q = scene.start_configuration if request.start is None else key_postures[0]
     first = generator.generate(start, start_q, ReferencePosture(robot.model, start_q))
@@ -335,7 +404,7 @@ def _statistics(search) -> dict:
                              "median_s": float(np.median(seconds)),
                              "p99_s": float(np.percentile(seconds, 99))}
     return {"nodes_expanded": search.expanded,
-            "posture_generations": search.generator.calls,
+            "posture_generations": len(search.posture_calls),
             "planning_time": time.perf_counter() - search.start_time,
             "ordered_sons": search.request.ordered_sons,
             "posture_calls": by_kind}
