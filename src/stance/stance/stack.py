@@ -60,7 +60,8 @@ def validate_spec(spec: TaskSpec, frame_exists=None) -> None:
     if not isinstance(spec.name, str) or not NAME_PATTERN.match(spec.name):
         raise StackError(f"task name {spec.name!r} must match {NAME_PATTERN.pattern}")
     if spec.kind not in KINDS:
-        raise StackError(f"{where}: unknown kind {spec.kind!r} (expected one of {', '.join(KINDS)})")
+        raise StackError(f"{where}: unknown kind {spec.kind!r} "
+                         f"(expected one of {', '.join(KINDS)})")
     if not isinstance(spec.frame, str):
         raise StackError(f"{where}: frame must be a string (got {spec.frame!r})")
     if spec.kind in FRAME_KINDS:
