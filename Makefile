@@ -13,7 +13,7 @@ ENV := source $(CURDIR)/env.sh &&
 
 .PHONY: help setup demo test bench clean
 help:
-	@echo "make demo   set up, then run the PIK demo on Talos (bag + plots)"
+	@echo "make demo   set up, then plan and execute a multi-contact motion on Talos (bag, plots, checks)"
 	@echo "make test   set up, then run every test"
 	@echo "make bench  set up, then run the benchmarks"
 	@echo "make setup  only build .venv and the colcon workspace"

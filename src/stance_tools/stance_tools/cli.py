@@ -13,7 +13,8 @@ SUBCOMMANDS = {
     "plot": ("stance_tools.plot", "write PNG plots from a recorded bag"),
     "teleop": ("stance_tools.teleop",
                "move a task's target from the keyboard or along a scripted path"),
-    "demo": ("stance_tools.demo", "PIK demo on Talos: node, recorder, scripted path, plots"),
+    "demo": ("stance_tools.demo", "the whole graph on a scene (plan, execute, record, check, "
+             "report); --scenario pik: the PIK demo"),
     "bench": ("stance_tools.bench",
               "benchmarks: pik (library step vs Pink), node (loop rate, latency)"),
     "reproduce": ("stance_tools.reproduce",
@@ -22,6 +23,8 @@ SUBCOMMANDS = {
     "check-plan": ("stance_tools.plan_tools",
                    "verify a contact plan's stances independently (exit 1 on failures)"),
     "plot-plan": ("stance_tools.plan_tools", "contact sheet (PNG) of a plan's stances"),
+    "check-run": ("stance_tools.check_run",
+                  "check an executed plan's bag: contacts, limits, C1, balance, stabilizer"),
     "graph": ("stance_tools.graph",
               "run the node graph: one process per node, crashed nodes restarted"),
 }

@@ -1,32 +1,85 @@
-"""`stance demo`: the PIK demo on Talos, recorded and plotted.
+"""`stance demo`: a recorded, plotted and checked run of Stance on Talos.
 
-pik_node (feet fixed > CoM over the feet > right hand > posture, progressive clamping,
-500 Hz), the recorder, and a scripted right-hand path that drives the arm into its damping
-zones and onto its limits, each in its own process; then the plots of the bag.
+--scenario pik: the PIK demo: pik_node (feet fixed > CoM over the feet > right hand >
+posture, progressive clamping, 500 Hz), the recorder, and a scripted right-hand path that
+drives the arm into its damping zones and onto its limits, each in its own process; then
+the plots of the bag in OUTPUT/bag and OUTPUT/plots.
+
+--scenario SCENE (a shipped scene, e.g. flat_steps, chair_table): the multi-contact
+pipeline: pik_node, contact_planner_node, trajectory_node and stabilizer_gate_node (the
+default graph's nodes, stabilizer gate on the scene), the recorder on PIPELINE_TOPICS, a
+PlanContacts goal for the scene, the execution until the trajectory status is `done`
+(`failed`: exit 1), then `stance check-run` on the bag and a report folder OUTPUT/SCENE:
+bag/, plots (contacts.png, stabilizer.png, joints.png, com.png), the plan (plan.json) and
+its contact sheet (plan.png), report.md, logs/. Exit 0 when every check passes.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
+import os
+import re
 import sys
+import threading
 import time
 from pathlib import Path
 
 from .processes import ProcessGroup
 
 DEFAULT_OUTPUT = Path("out") / "demo"
+PIK = "pik"
+DEFAULT_SCENARIO = "flat_steps"
+PIPELINE_TOPICS = ("/joint_states", "/pik/base_pose", "/robot_description",
+                   "/contact_planner/plan", "/trajectory/joint_trajectory",
+                   "/trajectory/active_stance", "/trajectory/status", "/stabilizer/state")
+# Subscribers each topic has once the graph and the recorder are up (the recorder, the
+# nodes reading it, this command's own status subscription).
+READY_SUBSCRIBERS = {"/joint_states": 1, "/pik/base_pose": 1, "/robot_description": 1,
+                     "/contact_planner/plan": 3, "/trajectory/joint_trajectory": 1,
+                     "/trajectory/active_stance": 2, "/trajectory/status": 2,
+                     "/stabilizer/state": 1}
+STARTUP_TIMEOUT = 120.0    # s for the nodes and the recorder to come up
+PLANNING_TIMEOUT = 960.0   # s for the plan: contact_planner_node's time_budget and a margin
+INTERPOLATION_TIMEOUT = 300.0  # s from the plan to the trajectory status `executing`
+EXECUTION_MARGIN = 60.0    # s allowed beyond the announced execution duration
+SETTLE = 1.0               # s recorded after `done` (the robot at rest on the last stance)
+DISCOVERY = 1.0            # s to discover a graph already running in the DDS domain
+SHEET_PANELS = 12          # stances drawn at most on the contact sheet
+# trajectory_node's joint speeds as a fraction of the URDF limits. Its own default, 0.5,
+# makes flat_steps' steps 0.23 s and weight shifts 60 ms long (CoM at 1 m/s): on a loaded
+# machine pik_node then misses periods and lands the feet up to 7 cm late.
+VELOCITY_SCALE = 0.15
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("-o", "--output", type=Path, default=DEFAULT_OUTPUT,
-                        help="directory for the bag, the plots and the logs")
+                        help="output directory (a scene's report goes to OUTPUT/SCENE)")
+    parser.add_argument("--scenario", default=DEFAULT_SCENARIO,
+                        help=f"'{PIK}' (the PIK demo) or a shipped scene for the contact "
+                             "pipeline, e.g. flat_steps, chair_table "
+                             f"(default: {DEFAULT_SCENARIO})")
+    parser.add_argument("--timing", choices=["sinusoidal", "time_optimal"],
+                        help="pipeline: trajectory_node's time law (default: its parameter "
+                             "file's)")
+    parser.add_argument("--velocity-scale", type=float, default=VELOCITY_SCALE,
+                        help="pipeline: trajectory_node's joint speeds as a fraction of the "
+                             f"URDF limits (default: {VELOCITY_SCALE})")
     parser.add_argument("--path", default="reach_limits",
-                        help="right-hand path: built-in name or YAML file")
+                        help="pik: right-hand path, built-in name or YAML file")
     parser.add_argument("--strategy", default="progressive",
-                        choices=["none", "clamping", "progressive"])
+                        choices=["none", "clamping", "progressive"],
+                        help="pik: joint limit strategy")
 
 
 def run(args) -> int:
+    if args.scenario == PIK:
+        return run_pik(args)
+    return run_pipeline(args)
+
+
+def run_pik(args) -> int:
     from ament_index_python.packages import get_package_share_directory
 
     output = args.output.resolve()
@@ -100,3 +153,284 @@ def _fail(group, message: str) -> int:
     group.stop_all()
     print(f"stance demo: {message}", file=sys.stderr)
     return 1
+
+
+# --- the contact pipeline (--scenario SCENE) ------------------------------------------------
+
+class GraphClient:
+    """An rclpy node in its own context, spun by a background thread: the PlanContacts
+    client and the trajectory statuses received (texts)."""
+
+    def __init__(self):
+        import rclpy
+        from rclpy.action import ActionClient
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from stance_msgs.action import PlanContacts
+        from std_msgs.msg import String
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = Node("stance_demo", context=self.context)
+        self.client = ActionClient(self.node, PlanContacts, "/contact_planner/plan_contacts")
+        self.goal_type = PlanContacts.Goal
+        self.lock = threading.Lock()
+        self.statuses = []
+        self.node.create_subscription(
+            String, "/trajectory/status", self._on_status,
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._running = True
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self):
+        while self._running and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def _on_status(self, msg):
+        with self.lock:
+            self.statuses.append(msg.data)
+
+    def status_count(self) -> int:
+        with self.lock:
+            return len(self.statuses)
+
+    def ready(self) -> str | None:
+        """None once the action server, trajectory_node's status and every recorded topic's
+        subscribers are there; else what is still missing."""
+        if not self.client.server_is_ready():
+            return "the PlanContacts action server"
+        if not self.status_count():
+            return "trajectory_node's status"
+        for topic, count in READY_SUBSCRIBERS.items():
+            if not self.node.count_publishers(topic) or \
+                    self.node.count_subscribers(topic) < count:
+                return f"{topic}: publisher and {count} subscriber(s)"
+        return None
+
+    def _call(self, function, *args, timeout: float):
+        """function(*args) in the spinning thread (an ActionClient request's answer can be
+        handled before send_*_async returns, ros2/rclpy#1123); the result of its future,
+        None after timeout s."""
+        task = self.executor.create_task(function, *args)
+        deadline = time.monotonic() + timeout
+        while not (task.done() and task.result().done()):
+            if time.monotonic() > deadline:
+                return None
+            time.sleep(0.02)
+        return task.result().result()
+
+    def plan(self, scene: str, timeout: float):
+        """The PlanContacts result for the scene (None when the goal is rejected or times
+        out)."""
+        handle = self._call(self.client.send_goal_async, self.goal_type(scene=scene),
+                            timeout=30.0)
+        if handle is None or not handle.accepted:
+            return None
+        response = self._call(handle.get_result_async, timeout=timeout)
+        return None if response is None else response.result
+
+    def wait_status(self, since: int, states, timeout: float) -> str | None:
+        """The first status after the first `since` ones whose state is in `states`; None
+        after timeout s."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                for text in self.statuses[since:]:
+                    if text.split(":", 1)[0] in states:
+                        return text
+            time.sleep(0.05)
+        return None
+
+    def close(self):
+        import rclpy
+
+        self._running = False
+        self._thread.join(timeout=2.0)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def pipeline_nodes(scene: str, trajectory: dict) -> list:
+    """(name, argv) of the default graph's nodes, the stabilizer gate on `scene`,
+    trajectory_node with the parameters `trajectory` (beyond its parameter file's)."""
+    from .graph import DEFAULT_GRAPH, command, load_graph
+
+    overrides = {"stabilizer_gate_node": {"scene": scene}, "trajectory_node": trajectory}
+    return [(spec.name, command(dataclasses.replace(
+        spec, parameters={**spec.parameters, **overrides.get(spec.name, {})})))
+        for spec in load_graph(DEFAULT_GRAPH)]
+
+
+@dataclasses.dataclass
+class PipelineRun:
+    """What the report states: planning (the action result), execution duration (s, from
+    the `executing` status), wall times (s) of the whole run and of its phases."""
+
+    result: object = None
+    execution_duration: float = math.nan
+    wall: dict = dataclasses.field(default_factory=dict)
+
+
+def run_pipeline(args) -> int:
+    from stance.planning.scene import scene_names
+
+    scene = args.scenario
+    if scene not in scene_names():
+        print(f"stance demo: unknown scenario {scene!r}: '{PIK}' or one of "
+              f"{', '.join(scene_names())}", file=sys.stderr)
+        return 2
+    output = (args.output / scene).resolve()
+    bag = output / "bag"
+    if bag.exists():
+        _remove_bag(bag)
+    began = time.monotonic()
+    record = PipelineRun()
+    group = ProcessGroup(output / "logs")
+    try:
+        trajectory = {name: value for name, value in (("timing", args.timing),
+                      ("velocity_scale", args.velocity_scale)) if value is not None}
+        message = _execute(group, scene, trajectory, bag, record)
+    finally:
+        group.stop_all()
+    if message:
+        record.wall["total"] = time.monotonic() - began
+        (output / "report.md").write_text(_markdown(scene, record, failure=message))
+        print(f"stance demo: {message} (logs in {output / 'logs'})", file=sys.stderr)
+        return 1
+    return _report(output, scene, bag, record, began)
+
+
+def _execute(group, scene: str, trajectory: dict, bag: Path,
+             record: PipelineRun) -> str | None:
+    """Start the graph and the recorder, plan, execute, stop the recorder; None when all
+    went well, else what failed."""
+    phase = time.monotonic()
+    client = GraphClient()
+    try:
+        time.sleep(DISCOVERY)
+        foreign = [t for t in PIPELINE_TOPICS if client.node.count_publishers(t)]
+        if foreign:
+            return (f"{', '.join(foreign)} already published: another graph runs in this "
+                    f"DDS domain (ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')})")
+        procs = [group.start(*argv, name=name) for name, argv in pipeline_nodes(scene, trajectory)]
+        recorder = group.start("stance", "record", "-o", str(bag), *PIPELINE_TOPICS,
+                               name="record")
+        procs.append(recorder)
+        missing = "the nodes"
+        deadline = time.monotonic() + STARTUP_TIMEOUT
+        while time.monotonic() < deadline:
+            crashed = [proc.name for proc in procs if proc.poll() is not None]
+            if crashed:
+                return f"{', '.join(crashed)} exited during start-up"
+            missing = client.ready()
+            if missing is None:
+                break
+            time.sleep(0.1)
+        else:
+            return f"start-up timed out after {STARTUP_TIMEOUT:g} s waiting for {missing}"
+        record.wall["start-up"] = time.monotonic() - phase
+        print(f"graph up in {record.wall['start-up']:.1f} s; planning {scene} ...")
+        phase, since = time.monotonic(), client.status_count()
+        record.result = client.plan(scene, timeout=PLANNING_TIMEOUT)
+        record.wall["planning"] = time.monotonic() - phase
+        if record.result is None:
+            return "the PlanContacts goal was rejected or got no result"
+        if not record.result.success:
+            return f"planning failed: {record.result.reason}: {record.result.message}"
+        print(f"plan: {record.result.stances} stances, {record.result.nodes_expanded} nodes, "
+              f"{record.result.planning_time:.1f} s; interpolating ...")
+        phase = time.monotonic()
+        status = client.wait_status(since, ("executing", "failed"), INTERPOLATION_TIMEOUT)
+        if status is None or status.startswith("failed"):
+            return f"trajectory_node: {status or 'no execution after the plan'}"
+        record.wall["interpolation"] = time.monotonic() - phase
+        match = re.search(r"in ([0-9.]+) s", status)
+        record.execution_duration = float(match.group(1)) if match else math.nan
+        print(f"{status} ...")
+        phase = time.monotonic()
+        status = client.wait_status(since, ("done", "failed"),
+                                    record.execution_duration + EXECUTION_MARGIN)
+        if status is None or status.startswith("failed"):
+            return f"trajectory_node: {status or 'execution not done in time'}"
+        record.wall["execution"] = time.monotonic() - phase
+        print(status)
+        time.sleep(SETTLE)
+    finally:
+        client.close()
+    if group.stop(recorder) != 0:
+        return f"the recorder reported lost or unwritten messages: " \
+               f"{recorder.log_path.read_text()[-1500:]}"
+    return None
+
+
+def _report(output: Path, scene: str, bag: Path, record: PipelineRun, began: float) -> int:
+    """check-run, plots, contact sheet and report.md; the check-run exit code."""
+    from . import check_run, plot
+
+    phase = time.monotonic()
+    report = check_run.check_bag(bag, scene)
+    code = check_run.print_report(report)
+    record.wall["check-run"] = time.monotonic() - phase
+    phase = time.monotonic()
+    figures = plot.plot_pipeline(bag, report, scene, output)
+    figures.append(_contact_sheet(record.result.plan, scene, output))
+    record.wall["plots"] = time.monotonic() - phase
+    record.wall["total"] = time.monotonic() - began
+    (output / "report.md").write_text(_markdown(scene, record, report, figures))
+    print(f"report: {output / 'report.md'}")
+    return code
+
+
+def _contact_sheet(plan_msg, scene: str, output: Path) -> Path:
+    """plan.json and its contact sheet plan.png (stance plot-plan)."""
+    from stance.planning.contacts import save_plan
+    from stance.planning.scene import load_scene
+    from stance.robot import Robot
+    from trajectory_node.conversions import plan_from_msg
+
+    from . import plan_tools
+
+    robot_spec = load_scene(scene).robot
+    plan, _ = plan_from_msg(plan_msg, Robot.load(robot_spec), robot_spec)
+    save_plan(plan, str(output / "plan.json"))
+    parser = argparse.ArgumentParser(prog=f"stance {plan_tools.PLOT_COMMAND}")
+    plan_tools.add_arguments(parser)
+    every = max(1, math.ceil(len(plan.stances) / SHEET_PANELS))
+    sheet = output / "plan.png"
+    plan_tools.run_plot(parser.parse_args([str(output / "plan.json"), "-o", str(sheet),
+                                           "--every", str(every)]))
+    return sheet
+
+
+def _markdown(scene, record: PipelineRun, report=None, figures=(), failure=None) -> str:
+    """report.md: the run's numbers, then check-run's verdicts and the files, or why the run
+    failed (failure)."""
+    result = record.result
+    lines = [f"# Stance demo: {scene}", "", "| quantity | value |", "|---|---|"]
+    if result is not None:
+        lines += [f"| planning time (planner) | {result.planning_time:.2f} s |",
+                  f"| nodes expanded | {result.nodes_expanded} |",
+                  f"| posture generations | {result.posture_generations} |",
+                  f"| stances | {result.stances} |"]
+    if math.isfinite(record.execution_duration):
+        lines += [f"| execution duration (trajectory) | {record.execution_duration:.2f} s |"]
+    lines += [f"| wall time: {phase} | {seconds:.1f} s |" for phase, seconds in record.wall.items()]
+    if failure is not None:
+        return "\n".join(lines + ["", f"## Run FAILED: {failure}", "", "See `logs/`.", ""])
+    lines += ["", f"## check-run: {'all passed' if report.passed else 'FAILED'}", "",
+              "| check | verdict | rows | failures |", "|---|---|---|---|"]
+    lines += [f"| {c.name} | {'pass' if c.passed else 'FAIL'} | {len(c.rows)} | "
+              f"{len(c.failures)} |" for c in report.checks]
+    failures = [f"- {c.name}: {f}" for c in report.checks for f in c.failures]
+    if failures:
+        lines += ["", "Failures:", ""] + failures
+    lines += ["", "## Files", "", "- `bag/`: MCAP bag (`stance check-run bag`)"]
+    lines += [f"- `{path.name}`" for path in figures]
+    lines += ["- `plan.json`: the plan (`stance check-plan plan.json`)", "- `logs/`", ""]
+    return "\n".join(lines)

@@ -7,6 +7,10 @@
 
 Time is in seconds from the first message of the bag (log time). A figure whose topic is missing
 is reported as an error (exit code 1); the others are still written.
+
+`plot_pipeline` draws the figures of an executed contact plan from a stance_tools.check_run
+report (stance demo --scenario SCENE): contacts.png, stabilizer.png, joints.png, com.png; time
+there is in seconds from the execution start (header stamps).
 """
 
 import math
@@ -15,6 +19,7 @@ import sys
 import xml.etree.ElementTree as ET
 from collections import defaultdict
 from pathlib import Path
+from types import SimpleNamespace
 
 import matplotlib
 
@@ -49,6 +54,9 @@ class Series:
 
     def add(self, name, time, value):
         self._samples[name].append((time, value))
+
+    def extend(self, name, times, values):
+        self._samples[name].extend(zip(times, values))
 
     def names(self):
         return list(self._samples)
@@ -278,3 +286,174 @@ def run(args):
             continue
         print(path)
     return 1 if failed else 0
+
+
+# --- figures of an executed contact plan (stance demo --scenario SCENE) ----------------------
+
+def plot_pipeline(bag, report, scene_spec, output):
+    """contacts.png, stabilizer.png, joints.png (moving joints) and com.png of a run checked
+    by stance_tools.check_run (report: its Report); returns the paths written."""
+    from stance.planning.scene import load_scene
+
+    output = Path(output)
+    scene = load_scene(scene_spec)
+    paths = [output / name for name in ("contacts.png", "stabilizer.png", "joints.png",
+                                        "com.png")]
+    plot_contacts(report, scene, paths[0])
+    plot_stabilizer(report, paths[1])
+    plot_execution_joints(report, paths[2])
+    plot_com(report, scene, paths[3])
+    return paths
+
+
+JOINTS_BEFORE = 0.5  # s of joint states drawn before the execution starts
+
+
+def plot_execution_joints(report, path):
+    """plot_joints of the moving joints from JOINTS_BEFORE s before the execution start
+    (pik_node's jump to the first witness) to the end, time from the execution start."""
+    run = report.run
+    shown = run.times >= run.stamps[0] - JOINTS_BEFORE
+    positions = Series()
+    for j, name in enumerate(run.joint_names):
+        positions.extend(name, run.times[shown] - run.stamps[0], run.joints[shown, j])
+    plot_joints(SimpleNamespace(positions=positions, urdf=report.robot.urdf), path,
+                moving_only=True)
+
+
+def _stance_lines(ax, stamps, origin, labels=False):
+    """Grey vertical lines where each stance is reached (s from origin), numbered on top."""
+    for k, stamp in enumerate(stamps):
+        ax.axvline(stamp - origin, color="0.6", lw=0.6, zorder=0)
+    if labels:
+        step = max(1, len(stamps) // 15)
+        top = ax.secondary_xaxis("top")
+        top.set_xticks([s - origin for s in stamps[::step]],
+                       [str(k) for k in range(0, len(stamps), step)], fontsize=7)
+        top.set_xlabel("stance reached", fontsize=8)
+
+
+ERROR_FLOOR = 1e-3  # mm: contact errors drawn no lower (log axis)
+
+
+def plot_contacts(report, scene, path):
+    """Per spot, when it holds which contact (bars, labelled by surface and stances), and
+    each held spot's distance to its contact target (mm) against the tolerance."""
+    from stance_tools.check_run import CONTACT_TOLERANCE, held_intervals
+
+    run = report.run
+    origin, end = run.stamps[0], run.times[-1]
+    spots = list(scene.spots)
+    colours = {spot: plt.cm.tab10(i % 10) for i, spot in enumerate(spots)}
+    fig, (bars, errors) = plt.subplots(
+        2, 1, figsize=(12, 2.2 + 0.45 * len(spots) + 3.2), sharex=True,
+        height_ratios=[0.6 + 0.45 * len(spots), 3.2], layout="constrained")
+    for contact, first, last, start, stop in held_intervals(run.stances, run.stamps):
+        stop = min(stop, end)
+        row = spots.index(contact.spot)
+        bars.barh(row, stop - start, left=start - origin, height=0.6,
+                  color=colours[contact.spot], alpha=0.8, edgecolor="black", lw=0.5)
+        bars.text((start + stop) / 2 - origin, row, f"{first}-{last}", ha="center",
+                  va="center", fontsize=6)
+        inside = (run.times >= start) & (run.times <= stop)
+        target = contact.spot_target(scene.surfaces[contact.surface]).translation
+        error = 1e3 * np.linalg.norm(report.positions[contact.spot][inside] - target, axis=1)
+        errors.plot(run.times[inside] - origin, np.maximum(error, ERROR_FLOOR), lw=0.9,
+                    color=colours[contact.spot])
+    bars.set_yticks(range(len(spots)), spots, fontsize=8)
+    bars.set_ylim(len(spots) - 0.5, -0.5)
+    bars.set_title("Contacts held per spot (bar text: first-last stance of the contact); grey: "
+                   "stance reached", fontsize=10)
+    _stance_lines(bars, run.stamps, origin, labels=True)
+    errors.axhline(1e3 * CONTACT_TOLERANCE, color="tab:red", ls="--", lw=1.0,
+                   label=f"tolerance {1e3 * CONTACT_TOLERANCE:g} mm")
+    for spot in spots:
+        errors.plot([], [], color=colours[spot], label=spot)
+    errors.legend(fontsize=8, loc="upper right")
+    errors.set_yscale("log")
+    errors.set_ylim(ERROR_FLOOR, 5e3 * CONTACT_TOLERANCE)
+    errors.set_ylabel("held spot to target (mm, log)")
+    errors.set_xlabel("time from execution start (s)")
+    errors.grid(alpha=0.3)
+    _stance_lines(errors, run.stamps, origin)
+    save(fig, path)
+
+
+def plot_stabilizer(report, path):
+    """/stabilizer/state: commanded state and blend over time, stance boundaries."""
+    run = report.run
+    times, enabled, blend = run.stabilizer
+    origin = run.stamps[0]
+    check = next(c for c in report.checks if c.name == "stabilizer")
+    fig, ax = plt.subplots(figsize=(12, 3.6), layout="constrained")
+    ax.step(times - origin, enabled.astype(float), where="post", lw=1.6, color="tab:blue",
+            label="enabled (commanded)")
+    ax.plot(times - origin, blend, lw=1.0, ls="--", color="tab:orange",
+            label="blend (0 off, 1 on)")
+    _stance_lines(ax, run.stamps, origin, labels=True)
+    switches = len(check.rows)
+    ax.set_title(f"Stabilizer state: {switches} switch(es) "
+                 f"{'(as scheduled)' if check.passed else '(NOT as scheduled)'}", fontsize=10)
+    ax.set_ylim(-0.1, 1.15)
+    ax.set_yticks([0, 1], ["off", "on"])
+    ax.set_xlabel("time from execution start (s)")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3)
+    save(fig, path)
+
+
+def plot_com(report, scene, path):
+    """CoM path in the world xy over the contact patches and each stance's support polygon,
+    and the CoM's distance inside the current support polygon over time (m)."""
+    from matplotlib.patches import Patch
+    from stance.planning.equilibrium import contact_vertices, support_polygon
+    from stance_tools.check_run import support_at
+
+    run, com = report.run, report.com
+    origin = run.stamps[0]
+    executing = run.times >= origin
+    colours = {spot: plt.cm.tab10(i % 10) for i, spot in enumerate(scene.spots)}
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(11, 10), height_ratios=[2.2, 1.0],
+                                      layout="constrained")
+    drawn = set()
+    for stance in run.stances:
+        for contact in stance.contacts:
+            if contact in drawn:
+                continue
+            drawn.add(contact)
+            vertices = contact_vertices(contact, scene)[0]
+            top.fill(vertices[:, 0], vertices[:, 1], facecolor=(*colours[contact.spot][:3], 0.08),
+                     edgecolor=colours[contact.spot], lw=1.0)
+    samples = np.flatnonzero(executing)
+    inside = np.full(len(samples), np.nan)
+    polygons = {}   # transition k -> (A, b) of its support polygon, None if non-coplanar
+    for n, i in enumerate(samples):
+        k, support = support_at(run.stances, run.stamps, run.times[i])
+        if k not in polygons:
+            try:
+                polygons[k] = support_polygon(support, scene)[1:]
+            except ValueError:   # non-coplanar support: no polygon
+                polygons[k] = None
+        if polygons[k] is not None:
+            a, b = polygons[k]
+            inside[n] = np.min(b - a @ com[i, :2])
+    path_points = top.scatter(com[executing, 0], com[executing, 1],
+                              c=run.times[executing] - origin, s=2, cmap="viridis")
+    fig.colorbar(path_points, ax=top, label="time from execution start (s)")
+    top.set_aspect("equal")
+    top.set_xlabel("x (m)")
+    top.set_ylabel("y (m)")
+    top.grid(alpha=0.3)
+    top.legend(handles=[Patch(facecolor=(*c[:3], 0.08), edgecolor=c, label=s)
+                        for s, c in colours.items()], fontsize=8, loc="upper left")
+    top.set_title("CoM (world xy, coloured by time) over the contact patches of all stances",
+                  fontsize=10)
+    bottom.plot(run.times[samples] - origin, 100.0 * inside, lw=1.2, color="tab:blue")
+    bottom.axhline(0.0, color="tab:red", ls="--", lw=1.0)
+    _stance_lines(bottom, run.stamps, origin)
+    bottom.set_ylabel("CoM inside support polygon (cm)")
+    bottom.set_xlabel("time from execution start (s)")
+    bottom.set_title("Distance of the CoM inside the current support polygon (< 0: outside; "
+                     "gaps: non-coplanar support)", fontsize=10)
+    bottom.grid(alpha=0.3)
+    save(fig, path)

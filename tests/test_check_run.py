@@ -1,0 +1,202 @@
+"""`stance check-run` on a bag recorded from a real flat_steps execution (pik_node,
+trajectory_node at the demo's speed, stabilizer_gate_node and `stance record` as processes,
+the plan computed in-process and published as contact_planner_node would): every check
+passes, exit 0. On a
+rewritten copy of the bag with a joint pushed beyond its limit, and on altered arrays fed
+to the check functions, the check concerned fails (exit 1 naming it)."""
+
+import time
+
+import pytest
+from conftest import wait_until
+from contact_planner_node.conversions import stance_plan_msg
+from helpers.probe import BackgroundNode
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from mcap_ros2.writer import Writer as Ros2Writer
+from pik_node.node import LATCHED
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
+from stance import Robot
+from stance.execution.stabilizer import StabilizerGate
+from stance.planning.planner import PlanRequest, plan_contacts
+from stance.planning.scene import load_scene
+from stance_msgs.msg import StancePlan
+from stance_tools import check_run
+from stance_tools.bag import mcap_files
+from stance_tools.cli import main as stance
+from stance_tools.demo import PIPELINE_TOPICS, READY_SUBSCRIBERS, VELOCITY_SCALE
+from stance_tools.processes import ProcessGroup
+from std_msgs.msg import String
+
+STEPS = 10   # samples_per_transition: a shorter run than the node's default
+STATUS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class PlanPublisher(BackgroundNode):
+    """Publishes the plan (latched, as contact_planner_node); collects trajectory
+    statuses."""
+
+    def __init__(self):
+        super().__init__("check_run_probe")
+        self.statuses = []
+        self.node.create_subscription(String, "/trajectory/status",
+                                      lambda msg: self.statuses.append(msg.data), STATUS)
+        self.plan_pub = self.node.create_publisher(StancePlan, "/contact_planner/plan", LATCHED)
+        self.start_spinning()
+
+    def ready(self):
+        """Every recorded topic has its publisher and its subscribers (the demo's rule;
+        this probe stands for contact_planner_node's plan publisher)."""
+        return all(self.node.count_publishers(topic) and
+                   self.node.count_subscribers(topic) >= count
+                   for topic, count in READY_SUBSCRIBERS.items())
+
+
+def record_flat_steps_run(directory):
+    """Execute flat_steps through the nodes while recording; returns the bag path."""
+    robot = Robot.load("talos")
+    scene = load_scene("flat_steps", robot)
+    outcome = plan_contacts(robot, PlanRequest(scene=scene, ordered_sons=True))
+    assert outcome.success, outcome.message
+    bag = directory / "bag"
+    group = ProcessGroup(directory / "logs")
+    probe = None
+    try:
+        group.start("pik_node", name="pik_node")
+        group.start("trajectory_node", "--ros-args", "-p", f"samples_per_transition:={STEPS}",
+                    "-p", f"velocity_scale:={VELOCITY_SCALE}", name="trajectory_node")
+        group.start("stabilizer_gate_node", "--ros-args", "-p", "scene:=flat_steps",
+                    name="stabilizer_gate_node")
+        recorder = group.start("stance", "record", "-o", str(bag), *PIPELINE_TOPICS,
+                               name="record")
+        probe = PlanPublisher()
+        wait_until(probe.ready, 90, period=0.1, what="the nodes and the recorder")
+        probe.plan_pub.publish(stance_plan_msg(outcome.plan, scene, robot,
+                                               Time(nanoseconds=time.time_ns()).to_msg()))
+        wait_until(lambda: any(s.startswith(("done:", "failed:")) for s in probe.statuses),
+                   180, period=0.1, what="trajectory status done")
+        assert not any(s.startswith("failed:") for s in probe.statuses), probe.statuses
+        time.sleep(1.0)
+        assert group.stop(recorder) == 0, recorder.log_path.read_text()
+    finally:
+        if probe is not None:
+            probe.close()
+        group.stop_all()
+    return bag
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    return record_flat_steps_run(tmp_path_factory.mktemp("check_run"))
+
+
+@pytest.fixture(scope="module")
+def report(bag):
+    return check_run.check_bag(bag)
+
+
+def test_real_run_passes_every_check(bag, report, capsys):
+    assert [c.name for c in report.checks] == ["contacts", "joint_limits", "joint_velocity",
+                                               "trajectory_c1", "equilibrium", "stabilizer"]
+    assert report.passed, [(c.name, c.failures) for c in report.checks]
+    # the checks looked at the motion: every stance, both soles, many samples
+    assert len(report.run.stances) > 5
+    contacts = report.checks[0]
+    assert {row[0] for row in contacts.rows} == {"left_sole", "right_sole"}
+    assert sum(row[3] for row in contacts.rows) > 1000
+    assert len(report.checks[4].rows) == len(report.run.stances)
+    assert stance(["check-run", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "== contacts: PASS" in out and "6/6 checks passed" in out
+
+
+def rewrite_bag(source, target, edit):
+    """Copy a bag's MCAP file with edit(topic, message) applied to each decoded message."""
+    (path,) = mcap_files(source)
+    target.mkdir()
+    with open(path, "rb") as stream, open(target / "doctored.mcap", "wb") as out:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        writer = Ros2Writer(out)
+        schemas = {}
+        for schema, channel, message, decoded in reader.iter_decoded_messages(
+                log_time_order=True):
+            if schema.name not in schemas:
+                schemas[schema.name] = writer.register_msgdef(schema.name,
+                                                              schema.data.decode())
+            edit(channel.topic, decoded)
+            writer.write_message(channel.topic, schemas[schema.name], decoded,
+                                 log_time=message.log_time,
+                                 publish_time=message.publish_time)
+        writer.finish()
+    return target / "doctored.mcap"
+
+
+def test_joint_pushed_beyond_its_limit_fails_joint_limits(bag, tmp_path, capsys):
+    robot = Robot.load("talos")
+    name, upper = robot.limited_joint_names[3], robot.upper[3]
+    count = [0]
+
+    def push(topic, msg):
+        if topic == "/joint_states":
+            count[0] += 1
+            if count[0] == 200:
+                index = list(msg.name).index(name)
+                msg.position[index] = upper + 0.05
+
+    doctored = rewrite_bag(bag, tmp_path / "doctored", push)
+    assert stance(["check-run", str(doctored), "--scene", "flat_steps"]) == 1
+    captured = capsys.readouterr()
+    assert "== joint_limits: FAIL" in captured.out
+    assert f"FAIL joint_limits: {name}" in captured.err
+    assert "checks passed; failed: joint_limits" in captured.out
+
+
+def test_altered_arrays_fail_the_check_concerned(report):
+    run = report.run
+    robot = Robot.load("talos")
+    scene = load_scene("flat_steps", robot)
+    # the left sole 5 mm off wherever it is
+    slipped = dict(report.positions, left_sole=report.positions["left_sole"] + [0.005, 0, 0])
+    assert check_run.check_contacts(run, scene, report.positions).passed
+    failures = check_run.check_contacts(run, scene, slipped).failures
+    assert failures and all(f.startswith("left_sole") for f in failures)
+    # a joint too fast
+    names, times, joints = run.joint_names, run.times, run.joints.copy()
+    column = names.index(robot.limited_joint_names[0])
+    joints[len(times) // 2:, column] += 0.2   # a 0.2 rad step: 10 rad/s over the 20 ms window
+    failed = check_run.check_joint_velocity(robot, names, times, joints)
+    assert failed.failures and failed.failures[0].startswith(robot.limited_joint_names[0])
+    # a velocity jump and a position jump in the commanded trajectory
+    t, q, v, trajectory_names = run.trajectory
+    assert check_run.check_trajectory_c1(robot, t, q, v, trajectory_names).passed
+    waypoint = len(t) // 2
+    step = t[waypoint] - t[waypoint - 1]
+    jumped = v.copy()
+    jumped[waypoint, 0] += 2.0 * check_run.C1_ACCELERATION_BOUND * step
+    assert any("velocity jump" in f for f in
+               check_run.check_trajectory_c1(robot, t, q, jumped, trajectory_names).failures)
+    moved = q.copy()
+    moved[waypoint:, 1] += 2.0 * robot.velocity_limit.max() * step
+    assert any("position jump" in f for f in
+               check_run.check_trajectory_c1(robot, t, moved, v, trajectory_names).failures)
+    # the CoM 0.5 m ahead of the feet: no equilibrium
+    far = report.com + [0.5, 0.0, 0.0]
+    assert check_run.check_equilibrium(run, robot, scene, report.com).passed
+    assert not check_run.check_equilibrium(run, robot, scene, far).passed
+    # the stabilizer switching off on coplanar support
+    initial, expected = check_run.expected_switches(run.stances, run.stamps,
+                                                    StabilizerGate(scene))
+    times, enabled, _ = run.stabilizer
+    assert initial and expected == []
+    assert check_run.check_stabilizer(initial, expected, times, enabled, run.stamps[0]).passed
+    flipped = enabled.copy()
+    flipped[len(flipped) // 2:] = False
+    failures = check_run.check_stabilizer(initial, expected, times, flipped,
+                                          run.stamps[0]).failures
+    assert failures and "unexpected switch" in failures[0]
+    # a scheduled switch that never comes
+    late = [(run.stamps[2], False, "stance 2: made up")]
+    assert "missing switch" in check_run.check_stabilizer(initial, late, times, enabled,
+                                                          run.stamps[0]).failures[0]

@@ -1,0 +1,56 @@
+"""`stance demo --scenario flat_steps` end to end: the graph plans and executes flat_steps
+while recording, check-run passes, and the report folder holds the bag, the plots, the
+plan and its contact sheet, and report.md with the numbers and the verdict."""
+
+import json
+import re
+import subprocess
+
+import pytest
+from stance_tools import check_run
+from stance_tools.bag import topic_counts
+from stance_tools.demo import PIPELINE_TOPICS
+
+PLOTS = ("contacts.png", "stabilizer.png", "joints.png", "com.png", "plan.png")
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """(exit code, stdout, report folder) of one pipeline demo run."""
+    output = tmp_path_factory.mktemp("demo")
+    done = subprocess.run(["stance", "demo", "--scenario", "flat_steps", "-o", str(output)],
+                          capture_output=True, text=True, timeout=600)
+    print(done.stdout[-3000:], done.stderr[-3000:])
+    return done.returncode, done.stdout, output / "flat_steps"
+
+
+def test_demo_runs_the_pipeline_and_every_check_passes(demo):
+    code, stdout, folder = demo
+    assert code == 0
+    assert "done: reached stance" in stdout
+    assert "check-run: 6/6 checks passed" in stdout
+
+
+def test_report_folder_holds_bag_plots_plan_and_report(demo):
+    _, _, folder = demo
+    counts = topic_counts(folder / "bag")
+    assert set(counts) == set(PIPELINE_TOPICS)
+    assert counts["/joint_states"] > 1000 and counts["/contact_planner/plan"] == 1
+    for name in PLOTS:
+        assert (folder / name).stat().st_size > 10_000, name
+    plan = json.loads((folder / "plan.json").read_text())
+    assert plan["scene"] == "flat_steps"
+    assert counts["/trajectory/active_stance"] == len(plan["stances"])
+    report = (folder / "report.md").read_text()
+    assert f"| stances | {len(plan['stances'])} |" in report
+    duration = float(re.search(r"\| execution duration \(trajectory\) \| ([0-9.]+) s", report)
+                     .group(1))
+    assert duration > 1.0
+    assert "## check-run: all passed" in report
+    assert len(re.findall(r"\| pass \|", report)) == 6
+    assert (folder / "logs" / "pik_node.log").is_file()
+
+
+def test_the_recorded_bag_checks_again_the_same(demo):
+    _, _, folder = demo
+    assert check_run.check_bag(folder / "bag").passed
