@@ -26,6 +26,7 @@ import threading
 import time
 from pathlib import Path
 
+from .background_node import BackgroundNode
 from .processes import ProcessGroup
 
 DEFAULT_OUTPUT = Path("out") / "demo"
@@ -157,22 +158,16 @@ def _fail(group, message: str) -> int:
 
 # --- the contact pipeline (--scenario SCENE) ------------------------------------------------
 
-class GraphClient:
-    """An rclpy node in its own context, spun by a background thread: the PlanContacts
-    client and the trajectory statuses received (texts)."""
+class GraphClient(BackgroundNode):
+    """The PlanContacts client and the trajectory statuses received (texts)."""
 
     def __init__(self):
-        import rclpy
         from rclpy.action import ActionClient
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from stance_msgs.action import PlanContacts
         from std_msgs.msg import String
 
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = Node("stance_demo", context=self.context)
+        super().__init__("stance_demo")
         self.client = ActionClient(self.node, PlanContacts, "/contact_planner/plan_contacts")
         self.goal_type = PlanContacts.Goal
         self.lock = threading.Lock()
@@ -181,15 +176,7 @@ class GraphClient:
             String, "/trajectory/status", self._on_status,
             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._running = True
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self):
-        while self._running and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.05)
+        self.start_spinning()
 
     def _on_status(self, msg):
         with self.lock:
@@ -245,15 +232,6 @@ class GraphClient:
                         return text
             time.sleep(0.05)
         return None
-
-    def close(self):
-        import rclpy
-
-        self._running = False
-        self._thread.join(timeout=2.0)
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
 
 
 def pipeline_nodes(scene: str, trajectory: dict) -> list:
