@@ -150,7 +150,10 @@ def test_joint_pushed_beyond_its_limit_fails_joint_limits(bag, tmp_path, capsys)
     captured = capsys.readouterr()
     assert "== joint_limits: FAIL" in captured.out
     assert f"FAIL joint_limits: {name}" in captured.err
-    assert "checks passed; failed: joint_limits" in captured.out
+    # the jump may also break contacts and speed limits at that sample, depending on the
+    # joint and on what the robot does at that moment
+    verdict = captured.out.strip().splitlines()[-1]
+    assert verdict.startswith("check-run:") and "joint_limits" in verdict.split("failed:")[1]
 
 
 def test_altered_arrays_fail_the_check_concerned(report):
