@@ -344,6 +344,12 @@ def _header(stamp, frame_id=""):
     return Header(stamp=stamp, frame_id=frame_id)
 
 
+def float_parameter(description: str, low: float, high: float) -> ParameterDescriptor:
+    """A read-only double parameter's descriptor with its allowed range [low, high]."""
+    return ParameterDescriptor(description=description, read_only=True, floating_point_range=[
+        FloatingPointRange(from_value=low, to_value=high)])
+
+
 def spin_until_signal(node: Node, executor) -> None:
     """Spin `node` on `executor` until SIGINT or SIGTERM, then return so the caller shuts
     down in order."""

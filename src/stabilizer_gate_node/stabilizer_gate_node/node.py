@@ -30,8 +30,8 @@ import sys
 
 from contact_planner_node.conversions import contact_from_msg
 from pik_node.conversions import se3_from_pose_msg
-from pik_node.node import LATCHED, RELIABLE, run_node
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+from pik_node.node import LATCHED, RELIABLE, float_parameter, run_node
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.time import Time
@@ -71,20 +71,16 @@ class StabilizerGateNode(Node):
             f"ramp {self.gate.ramp_time:g} s, state at {get('rate').value:g} Hz")
 
     def _declare_parameters(self):
-        def describe(text, low, high):
-            return ParameterDescriptor(description=text, read_only=True, floating_point_range=[
-                FloatingPointRange(from_value=low, to_value=high)])
-
         self.declare_parameter("scene", "", ParameterDescriptor(
             description="shipped scene name or scene file path; empty: surfaces learned from "
                         "the stances' contact frames (origins and normals)", read_only=True))
-        self.declare_parameter("angle_tolerance", 2.0, describe(
+        self.declare_parameter("angle_tolerance", 2.0, float_parameter(
             "largest angle between the surface normals of coplanar contacts (deg)", 0.0, 90.0))
-        self.declare_parameter("distance_tolerance", 0.005, describe(
+        self.declare_parameter("distance_tolerance", 0.005, float_parameter(
             "largest distance of a contact point from the first contact's plane (m)", 0.0, 1.0))
-        self.declare_parameter("ramp_time", 0.5, describe(
+        self.declare_parameter("ramp_time", 0.5, float_parameter(
             "time for the blend to go from off to on or back (s)", 0.01, 60.0))
-        self.declare_parameter("rate", 50.0, describe(
+        self.declare_parameter("rate", 50.0, float_parameter(
             "publication rate of the stabilizer state (Hz)", 1.0, 1000.0))
 
     def _contacts(self, stance: ContactStance, field: str) -> list:

@@ -48,8 +48,9 @@ import traceback
 import pinocchio as pin
 from contact_planner_node.conversions import actuated_q_index
 from geometry_msgs.msg import PointStamped, PoseStamped
-from pik_node.node import LATCHED, RELIABLE, TARGET_TYPES, fill_pose_msg, run_node
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from pik_node.node import (LATCHED, RELIABLE, TARGET_TYPES, fill_pose_msg, float_parameter,
+                           run_node)
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
@@ -122,10 +123,6 @@ class TrajectoryNode(Node):
         self._status("idle", "waiting for a plan")
 
     def _declare_parameters(self):
-        def describe(text, low, high):
-            return ParameterDescriptor(description=text, read_only=True, floating_point_range=[
-                FloatingPointRange(from_value=low, to_value=high)])
-
         self.declare_parameter("robot", "talos", ParameterDescriptor(
             description="example-robot-data name or URDF path (pik_node's robot)",
             read_only=True))
@@ -134,17 +131,17 @@ class TrajectoryNode(Node):
             integer_range=[IntegerRange(from_value=2, to_value=1000, step=1)]))
         self.declare_parameter("timing", "sinusoidal", ParameterDescriptor(
             description=f"time law: {' | '.join(TIMINGS)}", read_only=True))
-        self.declare_parameter("velocity_scale", 0.5, describe(
+        self.declare_parameter("velocity_scale", 0.5, float_parameter(
             "joint speeds at most this fraction of their URDF limits", 0.01, 1.0))
-        self.declare_parameter("acceleration_limit", 4.0, describe(
+        self.declare_parameter("acceleration_limit", 4.0, float_parameter(
             "joint acceleration limit of the time_optimal timing (rad/s^2)", 0.01, 1000.0))
-        self.declare_parameter("rate", 100.0, describe(
+        self.declare_parameter("rate", 100.0, float_parameter(
             "task targets streamed to pik_node per second (Hz)", 1.0, 1000.0))
         for name, default in (("contact", 0.5), ("com", 0.5), ("posture", 0.3)):
-            self.declare_parameter(f"{name}_gain", default, describe(
+            self.declare_parameter(f"{name}_gain", default, float_parameter(
                 f"IK gain of the {name} task(s): fraction of the error corrected per step",
                 1e-3, 1.0))
-        self.declare_parameter("service_timeout", 10.0, describe(
+        self.declare_parameter("service_timeout", 10.0, float_parameter(
             "wait for pik_node's services and their answers (s)", 0.1, 600.0))
 
     # --- inputs and worker ----------------------------------------------------------------
