@@ -38,6 +38,7 @@ import numpy as np
 import rclpy
 import yaml
 from geometry_msgs.msg import PointStamped, PoseStamped
+from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from scipy.spatial.transform import Rotation, Slerp
@@ -49,6 +50,8 @@ PATHS_PACKAGE_DIR = "paths"
 STEP_SCALE = 2.0  # factor applied to both steps by '+' and '-'
 KEYBOARD_RATE = 20.0  # Hz, default republish rate of the keyboard mode
 SCRIPTED_RATE = 50.0  # Hz, default publish rate of the scripted mode
+FLUSH_TIMEOUT = 5.0  # s, wait for pik_node to acknowledge the last targets before exiting
+# (Fast DDS acknowledges on its next heartbeat, every 3 s by default)
 AXIS_NAMES = "xyz"
 
 
@@ -356,6 +359,11 @@ class TargetLink:
              pose.orientation.w) = (float(value) for value in target.rotation.as_quat())
         self.publisher.publish(message)
 
+    def flush(self, timeout: float) -> bool:
+        """Wait up to timeout s until every subscriber acknowledged the targets published, so
+        the last one is not lost when teleop exits right after it; False on timeout."""
+        return self.publisher.wait_for_all_acked(Duration(seconds=timeout))
+
 
 # --- Modes ----------------------------------------------------------------------------------------
 
@@ -495,6 +503,10 @@ def run(args) -> int:
                                     link.translation_only)
             run_keyboard(link, teleop, args.rate or KEYBOARD_RATE, sys.stdin.fileno(),
                          sys.stdout)
+        if not link.flush(FLUSH_TIMEOUT):
+            print(f"stance teleop: the last targets were not acknowledged within "
+                  f"{FLUSH_TIMEOUT:g} s; pik_node may not have received them", file=sys.stderr)
+            return 1
         return 0
     except TeleopError as error:
         print(f"stance teleop: {error}", file=sys.stderr)
