@@ -1,23 +1,27 @@
 """Interpolation between stances (Escande et al. 2008, 3.3): the moving spot's path
 (straight lines along the normals, C1 spline, constant orientation then slerp), and a
 flat_steps plan interpolated sample by sample (common contacts held, joint limits, ends
-on the witnesses, contact events), failures naming the transition and sample."""
+on the witnesses, contact events), failures naming the transition and sample, and detours
+around paths the chair scene blocks."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
-from stance.execution.interpolation import (InterpolationError, SpotPath, TransitionPlanner,
+from stance.execution.interpolation import (DETOUR_LINE_TOLERANCE, SAMPLE_CONTACT_TOLERANCE,
+                                            InterpolationError, SpotPath, TransitionPlanner,
                                             spot_pose)
 from stance.planning.collision import CollisionModel
-from stance.planning.contacts import Contact, Stance
+from stance.planning.contacts import Contact, Stance, load_plan
 from stance.planning.planner import PlanRequest, plan_contacts
 from stance.planning.scene import load_scene
 from stance.robot import Robot
 
 LIFT = 0.05
+CHAIR_PLAN = Path(__file__).resolve().parent.parent / "docs" / "figures" / "chair_table_plan.json"
 UP = np.array([0.0, 0.0, 1.0])
 SLANTED = np.array([0.0, math.sin(0.4), math.cos(0.4)])
 
@@ -184,3 +188,45 @@ def test_spots_sharing_a_short_chain_with_a_held_spot_are_held_in_position_only(
         == {"right_thigh"}
     assert planner._position_only({"left_sole": None, "left_hand": None}, (thigh, hand)) \
         == set()
+
+
+@pytest.fixture(scope="module")
+def chair(flat):
+    """(robot, scene, the shipped chair plan, planner at n = 20)."""
+    robot = flat[0]
+    plan = load_plan(str(CHAIR_PLAN))
+    scene = load_scene(plan.scene, robot)
+    return robot, scene, plan, TransitionPlanner(robot, scene, CollisionModel(robot, scene))
+
+
+@pytest.mark.parametrize("index", [11, 75])   # a sole past the right hand; hand and forearm
+def test_a_blocked_path_takes_a_detour_that_keeps_contacts_limits_and_clearance(chair, index):
+    robot, scene, plan, planner = chair
+    first, second = plan.stances[index], plan.stances[index + 1]
+    samples, statistics = planner.transition(index, first, second)
+    assert statistics["detour_from"] is not None and statistics["detour_from"] >= 1
+    second_places = {(c.spot, c.surface, c.x, c.y, c.theta) for c in second.contacts}
+    common = [c for c in first.contacts if (c.spot, c.surface, c.x, c.y, c.theta) in second_places]
+    paths = planner.moving_paths(first, second)
+    gripper = [robot.model.joints[robot.model.getJointId(name)].idx_q
+               for name in scene.locked_joints]
+    for k, q in enumerate(samples, start=1):
+        for contact in common:
+            position, orientation = spot_error(planner, scene, q, contact)
+            assert position < 2 * SAMPLE_CONTACT_TOLERANCE and \
+                orientation < 2 * SAMPLE_CONTACT_TOLERANCE, (k, contact.spot)
+        joints = q[robot.limited_q_index]
+        assert np.all(joints >= robot.lower - 1e-9) and np.all(joints <= robot.upper + 1e-9)
+        np.testing.assert_array_equal(q[gripper], first.q[gripper])
+        touching = list(common) + [
+            Contact(spot, surface, 0.0, 0.0, 0.0) for spot, (path, before, after) in paths.items()
+            for surface in [planner._touched_surface(path, before, after, k / planner.steps)]
+            if surface is not None]
+        ignored = planner.generator.collision.ignored_pairs_for_contacts(touching)
+        assert planner.generator.collision.penetrations(q, ignored) == [], k
+        for spot, (path, _, _) in paths.items():   # on its lines the spot stays near them
+            if path.phase(k / planner.steps) != "spline":
+                target, actual = path.pose(k / planner.steps), spot_pose(planner.generator, q,
+                                                                         spot)
+                assert np.linalg.norm(actual.translation - target.translation) <= \
+                    DETOUR_LINE_TOLERANCE + 1e-6, (k, spot)

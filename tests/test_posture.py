@@ -1,6 +1,8 @@
 """Posture generator: contacts matched, joint limits, static stability (coplanar and not),
-failures with a reason, the static equilibrium region against the LP."""
+failures with a reason, the static equilibrium region against the LP, locked joints, and
+guide targets (a tolerance and a weight of their own)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -9,7 +11,8 @@ import pytest
 
 from stance.planning.contacts import Contact
 from stance.planning.equilibrium import contacts_equilibrium
-from stance.planning.posture import (PostureGenerator, ReferencePosture,
+from stance.execution.interpolation import SpotPose
+from stance.planning.posture import (PostureGenerator, PostureSettings, ReferencePosture,
                                      equilibrium_region)
 from stance.planning.scene import ContactSpot, Goal, Obstacle, Scene, Surface
 from stance.robot import Robot
@@ -148,3 +151,44 @@ def test_equilibrium_region_is_inside_what_the_lp_accepts(robot, scene, generato
     assert inside > 0
     far = np.array([5.0, 5.0, 0.9])
     assert not contacts_equilibrium(support, scene, far, generator.mass).feasible
+
+
+def test_locked_joints_never_move(robot, scene):
+    locked = dataclasses.replace(scene, locked_joints=("gripper_right_joint", "arm_left_4_joint"))
+    generator = PostureGenerator(robot, locked)
+    contacts = (sole_contact(robot, scene, "left_sole"),
+                sole_contact(robot, scene, "right_sole"),
+                Contact("right_hand", "table", 0.05, 0.0, 0.0))
+    q0 = robot.initial_configuration()
+    free = PostureGenerator(robot, scene).generate(contacts, q0, ReferencePosture(robot.model, q0))
+    result = generator.generate(contacts, q0, ReferencePosture(robot.model, q0))
+    assert_realised(generator, scene, result)
+    for name in locked.locked_joints:
+        index = robot.model.joints[robot.model.getJointId(name)].idx_q
+        assert result.q[index] == q0[index], name
+    moved = robot.model.joints[robot.model.getJointId("arm_left_4_joint")].idx_q
+    assert abs(free.q[moved] - q0[moved]) > 1e-3   # the lock is what keeps it
+
+
+def test_a_guide_target_yields_to_the_contacts_within_its_tolerance(robot, scene):
+    """A hand target out of reach: as a contact it fails; as a guide of weight 1e-2 and a
+    tolerance larger than its distance it is accepted where the arm stops, with the feet
+    still on their contacts."""
+    generator = PostureGenerator(robot, scene, settings=PostureSettings(time_budget=math.inf))
+    feet = (sole_contact(robot, scene, "left_sole"), sole_contact(robot, scene, "right_sole"))
+    q0 = robot.initial_configuration()
+    far = pin.SE3(np.eye(3), np.array([0.9, -0.3, 1.0]))     # ~0.3 m beyond the right hand
+    hard = generator.generate(feet + (SpotPose("right_hand", None, far),), q0,
+                              ReferencePosture(robot.model, q0, 1e-2))
+    assert not hard.success and "right_hand not reached" in hard.reason
+    guide = SpotPose("right_hand", None, far, tolerance=0.6, weight=1e-2)
+    result = generator.generate(feet + (guide,), q0, ReferencePosture(robot.model, q0, 1e-2))
+    assert result.success, result.reason
+    reached = spot_pose(generator, result.q, "right_hand").translation
+    assert 0.05 < np.linalg.norm(reached - far.translation) < 0.6
+    assert np.linalg.norm(reached - far.translation) < \
+        np.linalg.norm(spot_pose(generator, q0, "right_hand").translation - far.translation)
+    for contact in feet:
+        achieved = spot_pose(generator, result.q, contact.spot)
+        target = contact.spot_target(scene.surfaces[contact.surface])
+        assert np.linalg.norm(achieved.translation - target.translation) < 1e-3

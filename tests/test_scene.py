@@ -230,6 +230,10 @@ MALFORMED = [
     (_set("goal.frame", "tail_link"), "goal.frame", "no frame"),
     (_set("goal.sense", 0), "goal.sense", "+1 or -1"),
     (_delete("goal.threshold"), "goal.threshold", "missing"),
+    (_set("locked_joints", "gripper_left_joint"), "locked_joints", "must be a list"),
+    (_set("locked_joints", ["wing_joint"]), "locked_joints[0]", "unknown joint"),
+    (_set("locked_joints", ["gripper_left_joint", "gripper_left_joint"]), "locked_joints[1]",
+     "listed twice"),
 ]
 
 

@@ -78,9 +78,11 @@ def run_interpolate(args) -> int:
           f"n = {args.steps}, lift {args.lift} m")
     for index, entry in enumerate(figures):
         if entry["ok"]:
+            detour = "" if entry["detour_from"] is None else \
+                f"  detour from sample {entry['detour_from']}"
             print(f"  {index:3d} -> {index + 1:3d}  moving {','.join(entry['moving']) or '-':28s}"
                   f" generations {entry['generations']:3d}  iterations "
-                  f"{entry['iterations']:4d}  {1e3 * entry['seconds']:7.1f} ms")
+                  f"{entry['iterations']:4d}  {1e3 * entry['seconds']:7.1f} ms{detour}")
         else:
             print(f"  {index:3d} -> {index + 1:3d}  FAILED after {1e3 * entry['seconds']:.1f} "
                   f"ms: {entry['error']}")
@@ -88,7 +90,10 @@ def run_interpolate(args) -> int:
     print(f"whole plan: median {total:.2f} s over {len(totals)} runs (min {min(totals):.2f}, "
           f"max {max(totals):.2f}); per transition median {1e3 * np.median(seconds):.1f} ms, "
           f"max {1e3 * max(seconds):.1f} ms; {len(failed)} failed transitions "
-          f"{failed if failed else ''}")
+          f"{failed if failed else ''}; "
+          f"{sum(entry.get('detour_from') is not None for entry in figures)} detours")
+    print(f"first (cold) run {totals[0]:.2f} s: the static equilibrium regions of the "
+          f"support sets are computed then and cached for the later runs")
     result = {"scene": plan.scene, "steps": args.steps, "lift": args.lift,
               "stances": len(plan.stances), "total_seconds": total, "runs": totals,
               "failed": failed, "transitions": figures}

@@ -41,6 +41,21 @@ LIFT = 0.05    # m: default length of the straight lines leaving and entering a 
 # path is imposed, so it passes as close to the other bodies as the path takes it (a swing
 # foot by the stance shin in flat_steps fails at 5 mm)
 SAMPLE_COLLISION_MARGIN = 0.002
+# m and rad: contact error accepted at the samples. The planner's 0.1 mm is not always
+# reachable with a body held 2 mm from another (the linearised collision rows and the
+# contact penalty settle 0.1-0.3 mm apart); pik_node tracks the samples anyway and
+# `stance check-run` holds executed contacts to 2 mm.
+SAMPLE_CONTACT_TOLERANCE = 5e-4
+# m and rad: how far a moving spot may stay from its path when collisions, stability or
+# joint limits block the exact path (the paper corrected such paths by hand). On the lines
+# the body stays close to the normal it leaves or enters along; the spline between is only
+# a guide through free space.
+LINE_TOLERANCE = 0.002
+SPLINE_TOLERANCE = 0.08
+DETOUR_LINE_TOLERANCE = 0.01
+FUNNEL_SLOPE = 3.0  # m of allowance per m along the path from where the spline ends
+TOUCH_DISTANCE = 0.01  # m along the path: a moving body may touch its contact's surface
+PATH_WEIGHT = 1e-2  # of a moving spot's path error relative to a held contact's error
 
 
 class InterpolationError(RuntimeError):
@@ -56,13 +71,17 @@ class InterpolationError(RuntimeError):
 class SpotPose:
     """A spot held at a world pose: a geometric contact for PostureGenerator (it reads
     spot, surface, in_stability and spot_target). `surface` names the surface whose
-    obstacle the spot's body may touch (its collisions are ignored); position_only: the
-    orientation is free (see _PathPostureGenerator)."""
+    obstacle the spot's body may touch (its collisions are ignored), or is None;
+    position_only: the orientation is free (see _PathPostureGenerator); tolerance: m and
+    rad, how far the spot may stay from `pose`; weight: of its error relative to a
+    contact's (PostureGenerator reads both)."""
 
     spot: str
-    surface: str
+    surface: str | None
     pose: pin.SE3
     position_only: bool = False
+    tolerance: float = 0.0
+    weight: float = 1.0
     in_stability: bool = False
 
     def spot_target(self, surface) -> pin.SE3:
@@ -208,7 +227,7 @@ class TransitionPlanner:
 
     steps: n per transition; lift: m, the straight lines; criterion_weight: of the
     ReferencePosture criterion; settings: of the posture generator (default: no time
-    budget, SAMPLE_COLLISION_MARGIN).
+    budget, SAMPLE_COLLISION_MARGIN, SAMPLE_CONTACT_TOLERANCE).
     """
 
     def __init__(self, robot, scene, collision=None, settings: PostureSettings | None = None,
@@ -216,7 +235,8 @@ class TransitionPlanner:
         self.scene, self.steps, self.lift = scene, steps, lift
         self.criterion_weight = criterion_weight
         settings = settings or PostureSettings(time_budget=math.inf,
-                                               collision_margin=SAMPLE_COLLISION_MARGIN)
+                                               collision_margin=SAMPLE_COLLISION_MARGIN,
+                                               contact_tolerance=SAMPLE_CONTACT_TOLERANCE)
         self.generator = _PathPostureGenerator(robot, scene, collision, settings)
 
     def moving_paths(self, first, second) -> dict:
@@ -244,32 +264,61 @@ class TransitionPlanner:
 
     def transition(self, index: int, first, second):
         """(interior samples (n - 1, nq), statistics dict) from stance `first` to `second`;
-        raises InterpolationError when a sample fails."""
+        raises InterpolationError when a sample fails on the path and on its detour.
+
+        From the first sample the path blocks (collisions, stability or joint limits), the
+        transition takes a detour: the spline is then a guide only (any distance from it)
+        and position-only spots may leave their lines by SPLINE_TOLERANCE."""
         model, steps = self.generator.model, self.steps
         second_places = {_place(c) for c in second.contacts}
         common = tuple(c.with_stability(True) for c in first.contacts
                        if _place(c) in second_places)
         paths = self.moving_paths(first, second)
         position_only = self._position_only(paths, common)
-        q, samples, iterations = first.q, [], 0
         began = time.perf_counter()
+        q, previous, samples, iterations, detour_from = first.q, first.q, [], 0, None
         for k in range(1, steps):
             s = k / steps
-            held = tuple(SpotPose(spot, self._ignored_surface(path, before, after, s),
-                                  path.pose(s), spot in position_only)
-                         for spot, (path, before, after) in paths.items())
             criterion = ReferencePosture(model, pin.interpolate(model, first.q, second.q, s),
                                          self.criterion_weight)
-            result = self.generator.generate(common + held, q, criterion)
+            # warm start: the previous sample moved on by the last sample's step
+            guess = pin.integrate(model, q, pin.difference(model, previous, q))
+            for detour in ((False, True) if detour_from is None else (True,)):
+                held = tuple(SpotPose(spot, self._touched_surface(path, before, after, s),
+                                      path.pose(s), spot in position_only,
+                                      self._tolerance(path, s, spot in position_only,
+                                                      detour), PATH_WEIGHT)
+                             for spot, (path, before, after) in paths.items())
+                result = self.generator.generate(common + held, guess, criterion)
+                iterations += result.iterations
+                if result.success:
+                    break
             if not result.success:
                 raise InterpolationError(index, k, steps, result.reason)
-            q = result.q
-            iterations += result.iterations
+            if detour and detour_from is None:
+                detour_from = k
+            previous, q = q, result.q
             samples.append(q)
         statistics = {"moving": sorted(paths), "position_only": sorted(position_only),
-                      "generations": steps - 1,
+                      "detour_from": detour_from, "generations": len(samples),
                       "iterations": iterations, "seconds": time.perf_counter() - began}
         return np.reshape(samples, (steps - 1, model.nq)), statistics
+
+    @staticmethod
+    def _tolerance(path, s: float, position_only: bool, detour: bool) -> float:
+        """m and rad: how far a moving spot may stay from its path at s (see transition).
+        Off the lines the allowance is at most FUNNEL_SLOPE times the distance along the
+        path to where the spline, or the path, ends: the samples close in on the next
+        stance's witness even when no sample falls on the entering line."""
+        u = s * path.length
+        line = DETOUR_LINE_TOLERANCE if detour else LINE_TOLERANCE
+        if path.phase(s) == "spline":
+            to_end = path.leave_length + path.spline_length - u
+            return max(line, min(math.inf if detour else SPLINE_TOLERANCE,
+                                 FUNNEL_SLOPE * to_end))
+        if detour and position_only:
+            return max(line, min(SPLINE_TOLERANCE, FUNNEL_SLOPE * (path.length - u)))
+        return line
 
     def _position_only(self, paths, common) -> set:
         """Moving spots on the same kinematic branch as another held spot with fewer than
@@ -291,14 +340,17 @@ class TransitionPlanner:
                 if any(chain_dofs(joint(spot), j) < 6 for j in held if j != joint(spot))}
 
     @staticmethod
-    def _ignored_surface(path, before, after, s) -> str:
-        """The surface the moving body may touch at s: the one it leaves on the first half
-        of its path, the one it enters on the second (or the only one it has)."""
-        if before is None:
-            return after.surface
-        if after is None:
+    def _touched_surface(path, before, after, s):
+        """The surface the moving body may touch at s: the one it leaves or enters while
+        within TOUCH_DISTANCE of that contact along its path; None elsewhere, where the
+        body keeps its collision margin from everything (a sole held in position only
+        would otherwise tip its toe into the floor it leaves)."""
+        u = s * path.length
+        if before is not None and u <= TOUCH_DISTANCE:
             return before.surface
-        return before.surface if path.phase(s) == "leave" or s < 0.5 else after.surface
+        if after is not None and path.length - u <= TOUCH_DISTANCE:
+            return after.surface
+        return None
 
     def interpolate(self, plan) -> InterpolatedPlan:
         """The whole plan as one sampled path (raises InterpolationError on a failure)."""

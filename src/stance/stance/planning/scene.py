@@ -120,6 +120,7 @@ class Scene:
     key_postures: np.ndarray
     goal: Goal
     potential_slope: float = 10.0   # k of the potential f_T (f units per m along T')
+    locked_joints: tuple = ()       # joint names the posture generator never moves
     source: str = ""                # path of the scene file, for messages
 
 
@@ -176,7 +177,7 @@ class _SceneParser:
     def scene(self, document) -> Scene:
         fields = self.mapping(document, "", ("name", "robot", "surfaces", "obstacles", "spots",
                                              "start", "key_postures", "goal"),
-                              ("potential_slope",))
+                              ("potential_slope", "locked_joints"))
         name = self.string(fields["name"], "name")
         robot_spec = self.string(fields["robot"], "robot")
         if self.robot is None:
@@ -215,9 +216,22 @@ class _SceneParser:
                      potential_slope=self.number(fields.get("potential_slope",
                                                             DEFAULT_POTENTIAL_SLOPE),
                                                  "potential_slope", positive=True),
+                     locked_joints=self.locked_joints(fields.get("locked_joints", [])),
                      source=self.source)
 
     # Elements.
+
+    def locked_joints(self, value) -> tuple:
+        names = [self.string(entry, f"locked_joints[{i}]")
+                 for i, entry in enumerate(self.sequence(value, "locked_joints"))]
+        for index, name in enumerate(names):
+            if not self.robot.model.existJointName(name) or name == "universe":
+                self.fail(f"locked_joints[{index}]", f"unknown joint {name!r}")
+            if self.robot.model.joints[self.robot.model.getJointId(name)].nv == 0:
+                self.fail(f"locked_joints[{index}]", f"joint {name!r} has no degree of freedom")
+            if name in names[:index]:
+                self.fail(f"locked_joints[{index}]", f"joint {name!r} is listed twice")
+        return tuple(names)
 
     def named(self, value, path: str, build) -> dict:
         """A list of named elements as a dict by name (names unique)."""
