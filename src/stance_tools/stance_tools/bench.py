@@ -9,6 +9,8 @@
 - plan: the contact planner on the chair scene, ordered sons on and off
   (stance_tools.bench_plan).
 - interpolate: postures along the transitions of a plan (stance_tools.bench_interpolate).
+- graph: CPU use per node of the whole graph, idle and executing a plan
+  (stance_tools.bench_graph).
 
 A sub-benchmark is registered in BENCHMARKS by its module and the names of two functions,
 ``add(parser)`` and ``run(args) -> int``; modules must import heavy dependencies (rclpy) in
@@ -44,6 +46,8 @@ BENCHMARKS = {
     "plan": ("stance_tools.bench_plan", "add_plan_arguments", "run_plan",
              "contact planner on the chair scene: nodes, posture generations, time; "
              "ordered sons on vs off"),
+    "graph": ("stance_tools.bench_graph", "add_graph_arguments", "run_graph",
+              "CPU per node of the whole graph (% of one core), idle and executing a plan"),
 }
 
 
