@@ -16,7 +16,7 @@ from action_msgs.msg import GoalStatus
 from conftest import wait_until
 from contact_planner_node.conversions import (GoalRejected, contact_from_msg, contact_msg,
                                               key_postures_from_msgs)
-from contact_planner_node.worker import PlannerProcess
+from contact_planner_node.worker import PlannerProcess, _descendants
 from geometry_msgs.msg import Pose
 from helpers.probe import BackgroundNode
 from pik_node.conversions import se3_from_pose_msg
@@ -284,6 +284,7 @@ def test_sigint_during_a_plan_stops_the_node_and_its_planner_process(processes):
 @pytest.mark.parametrize("parameter, reason", [
     ("default_scene:=no_such_scene", "default_scene"),
     ("max_nodes:=0", "max_nodes"),
+    ("workers:=0", "workers"),
     ("robot:=no_such_robot", "unknown example-robot-data robot"),
 ])
 def test_bad_startup_parameter_is_refused_with_its_reason(processes, parameter, reason):
@@ -332,6 +333,32 @@ def test_planner_process_stops_on_request_and_serves_the_next_one(flat_steps):
                                progress=reports.append, should_stop=lambda: len(reports) >= 2)
         assert outcome.reason == "cancelled" and "restarted" not in outcome.message
         assert outcome.statistics["nodes_expanded"] >= 2
+        assert planner.plan(PlanRequest(scene=flat_steps, ordered_sons=True)).success
+    finally:
+        planner.close()
+
+
+def test_a_stopped_planner_leaves_no_worker_process_behind(flat_steps):
+    """workers = 2: the child runs a pool of worker processes; once stopped (gracefully or
+    killed after CANCEL_GRACE), every process the child had started has ended."""
+    planner = PlannerProcess("talos")
+    started = []
+
+    def should_stop():
+        if time.monotonic() - began < 4.0:   # the pool is up by then
+            return False
+        if not started:
+            started.extend(_descendants(planner._process.pid))
+        return True
+
+    try:
+        began = time.monotonic()
+        outcome = planner.plan(PlanRequest(scene=load_scene("chair_table"), workers=2,
+                                           time_budget=600.0), should_stop=should_stop)
+        assert outcome.reason == "cancelled"
+        assert len(started) >= 2, started    # the pool's workers
+        wait_until(lambda: not any(os.path.exists(f"/proc/{pid}") for pid in started), 5,
+                   what="the planner's worker processes to end")
         assert planner.plan(PlanRequest(scene=flat_steps, ordered_sons=True)).success
     finally:
         planner.close()

@@ -62,9 +62,11 @@ def scene_from_goal(goal, default_scene: str, robot_spec: str, robot):
     return scene
 
 
-def request_from_goal(goal, scene, robot, max_nodes: int, time_budget: float) -> PlanRequest:
+def request_from_goal(goal, scene, robot, max_nodes: int, time_budget: float,
+                      workers: int = 1) -> PlanRequest:
     """PlanRequest from a PlanContacts goal; zero max_nodes / time_budget take the node's
-    defaults, empty start / key postures / goal_frame the scene's."""
+    defaults, empty start / key postures / goal_frame the scene's; workers: processes
+    generating a node's first sons together (the node's parameter)."""
     if not math.isfinite(goal.time_budget) or goal.time_budget < 0.0:
         raise GoalRejected(MALFORMED_GOAL, f"time_budget: {goal.time_budget} s is not a "
                                            "finite non-negative duration")
@@ -75,7 +77,7 @@ def request_from_goal(goal, scene, robot, max_nodes: int, time_budget: float) ->
         key_postures=key_postures_from_msgs(goal.key_base_poses, goal.key_joints, robot),
         goal=goal_condition_from_msg(goal),
         max_nodes=goal.max_nodes or max_nodes, time_budget=goal.time_budget or time_budget,
-        seed=goal.seed, ordered_sons=not goal.all_sons)
+        seed=goal.seed, ordered_sons=not goal.all_sons, workers=workers)
 
 
 def contact_from_msg(msg: ContactMsg, scene, field: str) -> Contact:

@@ -42,6 +42,7 @@ from .worker import PLANNER_ERROR, PlannerProcess, PlannerProcessError
 ACTION_NAME = "/contact_planner/plan_contacts"
 PLAN_TOPIC = "/contact_planner/plan"
 FEEDBACK_RATE = 5.0  # Hz, at most
+MAX_WORKERS = 16     # planner worker processes at most
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -59,6 +60,7 @@ class ContactPlannerNode(Node):
         self.default_scene = get("default_scene").value
         self.max_nodes = get("max_nodes").value
         self.time_budget = get("time_budget").value
+        self.workers = get("workers").value
         try:  # the default scene must load, for this robot
             scene_from_goal(PlanContacts.Goal(), self.default_scene, self.robot_spec, self.robot)
         except GoalRejected as error:
@@ -73,7 +75,8 @@ class ContactPlannerNode(Node):
             callback_group=ReentrantCallbackGroup())
         self.get_logger().info(
             f"robot {self.robot_spec}, default scene {self.default_scene}, max_nodes "
-            f"{self.max_nodes}, time_budget {self.time_budget:g} s; serving {ACTION_NAME}")
+            f"{self.max_nodes}, time_budget {self.time_budget:g} s, workers {self.workers}; "
+            f"serving {ACTION_NAME}")
 
     def _declare_parameters(self):
         def describe(text, **extra):
@@ -89,6 +92,10 @@ class ContactPlannerNode(Node):
         self.declare_parameter("time_budget", 900.0, describe(
             "planning wall time at most (s), for goals with time_budget 0",
             floating_point_range=[FloatingPointRange(from_value=0.1, to_value=1e6)]))
+        self.declare_parameter("workers", 1, describe(
+            "processes generating a node's first sons together (1: the planner process "
+            "alone; more use more cores, same plan)",
+            integer_range=[IntegerRange(from_value=1, to_value=MAX_WORKERS, step=1)]))
 
     def stop_planning(self):
         """Make a running plan stop (shutdown); the executor then ends its thread."""
@@ -116,7 +123,7 @@ class ContactPlannerNode(Node):
         try:
             scene = scene_from_goal(goal, self.default_scene, self.robot_spec, self.robot)
             request = request_from_goal(goal, scene, self.robot, self.max_nodes,
-                                        self.time_budget)
+                                        self.time_budget, self.workers)
         except GoalRejected as error:
             self.get_logger().warning(f"goal refused ({error.reason}): {error}")
             goal_handle.abort()

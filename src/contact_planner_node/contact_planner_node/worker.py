@@ -5,13 +5,16 @@ calls), which would starve the node's executor threads (no cancel, no goal respo
 child process loads the robot once and plans one request at a time; the parent relays its
 progress reports and, once should_stop() is true, sets a shared stop event (the planner
 polls it between posture generations). If the child has not answered CANCEL_GRACE s later,
-it is killed and a fresh one is started: a stop always takes effect within that time.
-No rclpy here (the child stays light).
+it is killed, with the worker processes it started for a request with workers > 1, and a
+fresh one is started: a stop always takes effect within that time. No rclpy here (the child
+stays light).
 """
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing
+import os
 import signal
 import time
 
@@ -35,13 +38,15 @@ class PlannerProcess:
         self._robot_spec = robot_spec
         self._context = multiprocessing.get_context("spawn")  # no fork of DDS threads
         self._start()
+        # not a daemon: killed at exit before multiprocessing would wait for it
+        atexit.register(self._kill)
 
     def _start(self):
         self._connection, child_end = self._context.Pipe()
         self._stop = self._context.Event()
         self._process = self._context.Process(
             target=_serve, args=(self._robot_spec, child_end, self._stop),
-            name="contact_planner", daemon=True)
+            name="contact_planner", daemon=False)  # a daemon may not start the pool
         self._process.start()
         child_end.close()
         self._ready = False
@@ -99,12 +104,41 @@ class PlannerProcess:
         self._start()
 
     def _kill(self):
+        """Kill the child and the worker processes it may have started (workers > 1)."""
+        descendants = _descendants(self._process.pid)
         self._process.kill()
+        for pid in descendants:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
         self._process.join()
         self._connection.close()
 
     def close(self):
         self._kill()
+        atexit.unregister(self._kill)
+
+
+def _descendants(pid: int) -> list:
+    """Pids of the live descendants of process pid (from /proc, Linux)."""
+    children = {}
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/stat") as stat:
+                text = stat.read()
+        except OSError:  # gone meanwhile
+            continue
+        parent = int(text[text.rindex(")") + 2:].split()[1])
+        children.setdefault(parent, []).append(int(entry.name))
+    found, frontier = [], [pid]
+    while frontier:
+        kids = children.get(frontier.pop(), [])
+        found.extend(kids)
+        frontier.extend(kids)
+    return found
 
 
 def _serve(robot_spec, connection, stop):

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 
+POSTURE_MEDIAN_TARGET = 0.030   # s per posture generation (issue target)
+
 
 def add_plan_arguments(parser) -> None:
     parser.add_argument("--scene", default="chair_table", help="scene name or YAML path")
@@ -32,6 +34,11 @@ def _print_run(title, outcome, seconds):
         print(f"  posture generator [{kind:6s}] calls {figures['calls']:6d}  success "
               f"{100 * rate:5.1f} %  median {1e3 * figures['median_s']:6.1f} ms  p99 "
               f"{1e3 * figures['p99_s']:7.1f} ms")
+    if "all" in statistics.get("posture_calls", {}):
+        median = statistics["posture_calls"]["all"]["median_s"]
+        print(f"  posture generator median over all calls {1e3 * median:.1f} ms: target <= "
+              f"{1e3 * POSTURE_MEDIAN_TARGET:.0f} ms "
+              f"{'PASS' if median <= POSTURE_MEDIAN_TARGET else 'FAIL'}")
 
 
 def run_plan(args) -> int:

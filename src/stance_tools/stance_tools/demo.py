@@ -5,9 +5,10 @@ posture, progressive clamping, 500 Hz), the recorder, and a scripted right-hand 
 drives the arm into its damping zones and onto its limits, each in its own process; then
 the plots of the bag in OUTPUT/bag and OUTPUT/plots.
 
---scenario SCENE (a shipped scene, e.g. flat_steps, chair_table): the multi-contact
-pipeline: pik_node, contact_planner_node, trajectory_node and stabilizer_gate_node (the
-default graph's nodes, stabilizer gate on the scene), the recorder on PIPELINE_TOPICS, a
+--scenario SCENE (a shipped scene, e.g. flat_steps, or chair_table, alias chair): the
+multi-contact pipeline: pik_node, contact_planner_node, trajectory_node and
+stabilizer_gate_node (the default graph's nodes, stabilizer gate on the scene, the planner
+with --planner-workers processes), the recorder on PIPELINE_TOPICS, a
 PlanContacts goal for the scene, the execution until the trajectory status is `done`
 (`failed`: exit 1), then `stance check-run` on the bag and a report folder OUTPUT/SCENE:
 bag/, plots (contacts.png, stabilizer.png, joints.png, com.png), the plan (plan.json) and
@@ -52,6 +53,8 @@ SHEET_PANELS = 12          # stances drawn at most on the contact sheet
 # makes flat_steps' steps 0.23 s and weight shifts 60 ms long (CoM at 1 m/s): on a loaded
 # machine pik_node then misses periods and lands the feet up to 7 cm late.
 VELOCITY_SCALE = 0.15
+PLANNER_WORKERS = min(2, os.cpu_count() or 1)
+SCENARIO_ALIASES = {"chair": "chair_table"}   # the issue's name for the chair escape
 
 
 def add_arguments(parser) -> None:
@@ -67,6 +70,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--velocity-scale", type=float, default=VELOCITY_SCALE,
                         help="pipeline: trajectory_node's joint speeds as a fraction of the "
                              f"URDF limits (default: {VELOCITY_SCALE})")
+    parser.add_argument("--planner-workers", type=int, default=PLANNER_WORKERS,
+                        help="pipeline: contact_planner_node's worker processes (default: "
+                             f"{PLANNER_WORKERS}, the cores up to 2)")
     parser.add_argument("--path", default="reach_limits",
                         help="pik: right-hand path, built-in name or YAML file")
     parser.add_argument("--strategy", default="progressive",
@@ -234,12 +240,14 @@ class GraphClient(BackgroundNode):
         return None
 
 
-def pipeline_nodes(scene: str, trajectory: dict) -> list:
+def pipeline_nodes(scene: str, trajectory: dict, planner: dict | None = None) -> list:
     """(name, argv) of the default graph's nodes, the stabilizer gate on `scene`,
-    trajectory_node with the parameters `trajectory` (beyond its parameter file's)."""
+    trajectory_node and contact_planner_node with the parameters `trajectory` and `planner`
+    (beyond their parameter files')."""
     from .graph import DEFAULT_GRAPH, command, load_graph
 
-    overrides = {"stabilizer_gate_node": {"scene": scene}, "trajectory_node": trajectory}
+    overrides = {"stabilizer_gate_node": {"scene": scene}, "trajectory_node": trajectory,
+                 "contact_planner_node": planner or {}}
     return [(spec.name, command(dataclasses.replace(
         spec, parameters={**spec.parameters, **overrides.get(spec.name, {})})))
         for spec in load_graph(DEFAULT_GRAPH)]
@@ -258,7 +266,7 @@ class PipelineRun:
 def run_pipeline(args) -> int:
     from stance.planning.scene import scene_names
 
-    scene = args.scenario
+    scene = SCENARIO_ALIASES.get(args.scenario, args.scenario)
     if scene not in scene_names():
         print(f"stance demo: unknown scenario {scene!r}: '{PIK}' or one of "
               f"{', '.join(scene_names())}", file=sys.stderr)
@@ -273,7 +281,8 @@ def run_pipeline(args) -> int:
     try:
         trajectory = {name: value for name, value in (("timing", args.timing),
                       ("velocity_scale", args.velocity_scale)) if value is not None}
-        message = _execute(group, scene, trajectory, bag, record)
+        message = _execute(group, scene, trajectory, {"workers": args.planner_workers}, bag,
+                           record)
     finally:
         group.stop_all()
     if message:
@@ -284,7 +293,7 @@ def run_pipeline(args) -> int:
     return _report(output, scene, bag, record, began)
 
 
-def _execute(group, scene: str, trajectory: dict, bag: Path,
+def _execute(group, scene: str, trajectory: dict, planner: dict, bag: Path,
              record: PipelineRun) -> str | None:
     """Start the graph and the recorder, plan, execute, stop the recorder; None when all
     went well, else what failed."""
@@ -296,7 +305,8 @@ def _execute(group, scene: str, trajectory: dict, bag: Path,
         if foreign:
             return (f"{', '.join(foreign)} already published: another graph runs in this "
                     f"DDS domain (ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')})")
-        procs = [group.start(*argv, name=name) for name, argv in pipeline_nodes(scene, trajectory)]
+        procs = [group.start(*argv, name=name)
+                 for name, argv in pipeline_nodes(scene, trajectory, planner)]
         recorder = group.start("stance", "record", "-o", str(bag), *PIPELINE_TOPICS,
                                name="record")
         procs.append(recorder)

@@ -393,11 +393,12 @@ def _run_search(search, generator, robot, request, scene, start, key_postures):
 
 
 def _statistics(search) -> dict:
-    """Search figures; posture_calls per kind (start, add, remove): calls, successes and
-    the median and p99 seconds of a call."""
+    """Search figures; posture_calls per kind (start, add, remove, and all of them):
+    calls, successes and the median and p99 seconds of a call."""
     by_kind = {}
-    for kind in ("start", "add", "remove"):
-        calls = [(ok, seconds) for k, ok, seconds in search.posture_calls if k == kind]
+    for kind in ("start", "add", "remove", "all"):
+        calls = [(ok, seconds) for k, ok, seconds in search.posture_calls
+                 if kind in (k, "all")]
         if calls:
             seconds = np.array([s for _, s in calls])
             by_kind[kind] = {"calls": len(calls), "successes": sum(ok for ok, _ in calls),
