@@ -17,6 +17,19 @@ URDF speed limits; or time_optimal, also under `acceleration_limit`), then execu
 - the active stance goes out when the transition into it starts (stance 0: at the start),
   stamped with when that transition ends (the stabilizer_gate_node contract).
 
+pik_node lost during execution (PikWatch on /pik/status: silent for `pik_status_timeout`
+s, or its cycle counter went back, i.e. a new process): streaming pauses at the current
+sample (`executing: pik_node silent for ... at transition i (t = ...): streaming paused`)
+until pik_node publishes again, for at most `pik_restart_timeout` s. A restarted pik_node
+(`stance graph` restarts a crashed node) gets the configuration of the paused sample
+(/pik/set_configuration) and the current stack again (`executing: pik_node restarted at
+transition i ...; resuming from the last commanded configuration`); the same process after
+a stall keeps its own. Streaming then resumes from that sample, the time base shifted by
+the pause (the JointTrajectory goes out again with its start shifted; stances already
+announced keep their stamps). If pik_node does not come back in time, or refuses the
+re-sent configuration or stack, the plan ends in `failed: execution stopped: pik_node ...`
+and the node waits for the next one.
+
 A new plan while one executes: the current transition is finished (the robot is then at
 rest on a witness: every stance boundary is a contact event), then the new plan starts
 from its own first witness (a jump if it does not start there). A plan arriving while
@@ -34,12 +47,18 @@ Topics and services (QoS in parentheses):
                                      interpolating | executing | done | failed (reliable,
                                      transient local)
   pub  /pik/tasks/<name>/target      PoseStamped | PointStamped (com) | JointState (posture)
-  cli  /pik/set_configuration, /pik/set_stack
+  sub  /pik/status                   stance_msgs/SolverStatus (best effort, keep last 1),
+                                     pik_node's liveness (PikWatch, a private node
+                                     <name>_pik_watch the worker polls)
+  cli  /pik/set_configuration, /pik/set_stack: a call waits at most `service_timeout` s
+                                     for the service and its answer together, the
+                                     request sent again each RESEND_PERIOD s
 """
 
 from __future__ import annotations
 
 import copy
+import math
 import sys
 import threading
 import time
@@ -54,12 +73,13 @@ from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import InterpolationError, TransitionPlanner
 from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
 from stance.planning.collision import CollisionModel
-from stance_msgs.msg import ContactStance, StancePlan
+from stance_msgs.msg import ContactStance, SolverStatus, StancePlan
 from stance_msgs.srv import SetConfiguration, SetStack
 from std_msgs.msg import Header, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -71,11 +91,87 @@ PLAN_TOPIC = "/contact_planner/plan"
 TRAJECTORY_TOPIC = "/trajectory/joint_trajectory"
 ACTIVE_STANCE_TOPIC = "/trajectory/active_stance"
 STATUS_TOPIC = "/trajectory/status"
+PIK_STATUS_TOPIC = "/pik/status"
+LATEST = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+RESEND_PERIOD = 1.0  # s without an answer before a service request is sent again
 TIMINGS = ("sinusoidal", "time_optimal")
 
 
 class ExecutionError(RuntimeError):
     """pik_node refused or did not answer a service call during execution."""
+
+
+class PikLost(ExecutionError):
+    """pik_node went silent or restarted during execution (PikWatch)."""
+
+
+class PikWatch:
+    """pik_node's liveness during an execution (between arm() and disarm()), from its
+    /pik/status stream; used by the worker thread only.
+
+    Why this signal: a SIGKILLed pik_node stays in the DDS graph until its lease expires
+    (Fast DDS: 20 s), so neither graph queries nor wait_for_service notice it; its status,
+    one message per control period, does: silence longer than `silence` s means it went
+    away (or stalls), and `cycles` (control periods since the process started) going back
+    means a new process took over, even one restarted within `silence`. Both are pik_node's
+    own contract, whatever the DDS implementation.
+
+    The subscription (keep last 1) sits on a private node that no executor spins: each
+    check takes only the newest status, instead of the executor handling all of them (at
+    pik_node's 500 Hz that costs a fifth to a third of a core)."""
+
+    def __init__(self, owner: Node, silence: float):
+        self.silence = silence
+        # the owner's command-line remappings (__node:=...) are not this node's
+        self._node = Node(f"{owner.get_name()}_pik_watch", namespace=owner.get_namespace(),
+                          context=owner.context, use_global_arguments=False,
+                          start_parameter_services=False)
+        self._subscription = self._node.create_subscription(
+            SolverStatus, PIK_STATUS_TOPIC, lambda _: None, LATEST)
+        self._seen = -math.inf    # monotonic s when a status was last taken
+        self._cycles = 0          # of that status
+        self._starts = 0          # cycle counter resets seen (new pik_node processes)
+        self._armed = None        # (monotonic s, _starts) at arm(); None: not judged
+
+    def destroy(self):
+        self._node.destroy_node()
+
+    def _take(self):
+        """Take the newest status, if one arrived since the last take."""
+        handle = self._subscription.handle
+        with handle:
+            taken = handle.take_message(SolverStatus, False)
+        if taken is not None:
+            if taken[0].cycles < self._cycles:
+                self._starts += 1
+            self._cycles, self._seen = taken[0].cycles, time.monotonic()
+
+    def arm(self):
+        """Judge from now on (pik_node has just answered)."""
+        self._take()
+        self._armed = (time.monotonic(), self._starts)
+
+    def disarm(self):
+        self._armed = None
+
+    def lost(self) -> str | None:
+        """Why pik_node is lost since arm(); None while it is fine or not judged."""
+        if self._armed is None:
+            return None
+        self._take()
+        since, starts = self._armed
+        if self._starts != starts:
+            return "pik_node restarted"
+        silent = time.monotonic() - max(self._seen, since)
+        return f"pik_node silent for {silent:.2f} s" if silent > self.silence else None
+
+    def back(self, lost_at: float) -> bool | None:
+        """Once armed and lost at monotonic `lost_at`: True when a new process publishes,
+        False when the same one publishes again, None while neither has."""
+        self._take()
+        if self._starts != self._armed[1]:
+            return True
+        return False if self._seen > lost_at else None
 
 
 class TrajectoryNode(Node):
@@ -97,6 +193,8 @@ class TrajectoryNode(Node):
         self.acceleration_limit = get("acceleration_limit").value
         self.period = 1.0 / get("rate").value
         self.service_timeout = get("service_timeout").value
+        self.pik_restart_timeout = get("pik_restart_timeout").value
+        self._pik = PikWatch(self, get("pik_status_timeout").value)
         self.gains = {name: get(f"{name}_gain").value for name in ("contact", "com", "posture")}
         self._fk_data = self.robot.model.createData()
         q_index = actuated_q_index(self.robot)    # actuated 1-DoF joints, pik_node's order
@@ -143,6 +241,12 @@ class TrajectoryNode(Node):
                 1e-3, 1.0))
         self.declare_parameter("service_timeout", 10.0, float_parameter(
             "wait for pik_node's services and their answers (s)", 0.1, 600.0))
+        self.declare_parameter("pik_status_timeout", 0.5, float_parameter(
+            "during execution, pik_node is lost when /pik/status is silent this long (s; "
+            "longer than pik_node's period and stalls)", 0.01, 60.0))
+        self.declare_parameter("pik_restart_timeout", 30.0, float_parameter(
+            "wait for a lost pik_node to publish again before the execution stops (s; 0: "
+            "stop at once)", 0.0, 600.0))
 
     # --- inputs and worker ----------------------------------------------------------------
 
@@ -169,6 +273,10 @@ class TrajectoryNode(Node):
         with self._wakeup:
             self._wakeup.notify()
         self._worker.join(timeout=2.0)
+
+    def destroy_node(self):
+        self._pik.destroy()
+        super().destroy_node()
 
     def _run(self):
         """Worker: one plan after the other; an unexpected error fails that plan only."""
@@ -224,15 +332,43 @@ class TrajectoryNode(Node):
         boundaries = trajectory.times[path.stance_samples]   # s: when each stance is reached
         self._call(self.set_configuration_client, configuration_request(self.robot,
                                                                         plan.stances[0].q))
-        stack, held = self._enter(scene, planner, plan, 0, None)
+        self._pik.arm()
+        try:
+            self._stream_plan(msg, plan, scene, planner, trajectory, boundaries)
+        finally:
+            self._pik.disarm()
+
+    def _stream_plan(self, msg, plan, scene, planner, trajectory, boundaries):
+        stack, held = self._transition(scene, planner, plan, 0)
+        sent = None                               # the stack pik_node holds
         start, began = self.get_clock().now(), time.monotonic()
         self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
         self._publish_active(msg, 0, start, 0.0)
         self._publish_active(msg, 1, start, boundaries[1])
         self._status("executing", f"{len(plan.stances)} stances in {trajectory.duration:.2f} "
                                   f"s ({self.timing})")
-        transition, last, next_tick = 0, len(plan.stances) - 2, began
+        transition, last, t, next_tick = 0, len(plan.stances) - 2, 0.0, began
         while not self._stop.is_set():
+            try:
+                if stack != sent:
+                    self._call(self.set_stack_client, stack_request(stack))
+                    sent = stack
+                lost = self._pik.lost()
+                if lost:
+                    raise PikLost(lost)
+                self._stream(trajectory.sample(t)[0], stack, held)
+            except PikLost as lost:
+                sent = self._recover(str(lost), transition, t, trajectory, stack, sent)
+                began, next_tick = time.monotonic() - t, time.monotonic()
+                start = self.get_clock().now() - Duration(seconds=t)
+                self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
+                continue
+            if t >= trajectory.duration:
+                self._status("done", f"reached stance {len(plan.stances) - 1} of scene "
+                                     f"{plan.scene!r}")
+                return
+            next_tick += self.period
+            time.sleep(max(next_tick - time.monotonic(), 0.0))
             t = min(time.monotonic() - began, trajectory.duration)
             while transition < last and t >= boundaries[transition + 1]:
                 if self._has_pending():
@@ -241,25 +377,46 @@ class TrajectoryNode(Node):
                                               f"{transition + 1}")
                     return
                 transition += 1
-                stack, held = self._enter(scene, planner, plan, transition, stack)
+                stack, held = self._transition(scene, planner, plan, transition)
                 self._publish_active(msg, transition + 1, start, boundaries[transition + 1])
-            self._stream(trajectory.sample(t)[0], stack, held)
-            if t >= trajectory.duration:
-                self._status("done", f"reached stance {len(plan.stances) - 1} of scene "
-                                     f"{plan.scene!r}")
-                return
-            next_tick += self.period
-            time.sleep(max(next_tick - time.monotonic(), 0.0))
 
-    def _enter(self, scene, planner, plan, transition, stack):
+    def _recover(self, reason, transition, t, trajectory, stack, sent):
+        """Streaming paused at sample time t (s): wait up to pik_restart_timeout s for
+        pik_node to publish again; a new process gets the configuration at t and `stack`.
+        Returns the stack pik_node then holds; ExecutionError when it does not come back or
+        refuses them."""
+        where = f"at transition {transition} (t = {t:.2f} s of {trajectory.duration:.2f} s)"
+        self._status("executing", f"{reason} {where}: streaming paused, waiting up to "
+                                  f"{self.pik_restart_timeout:g} s for it")
+        lost_at = time.monotonic()
+        while (restarted := self._pik.back(lost_at)) is None:
+            if self._stop.is_set() or time.monotonic() - lost_at > self.pik_restart_timeout:
+                raise ExecutionError(f"pik_node did not come back within "
+                                     f"{self.pik_restart_timeout:g} s; {reason} {where}")
+            time.sleep(0.01)
+        self._pik.arm()
+        if not restarted:
+            self._status("executing", f"pik_node publishes again (same process) {where}; "
+                                      "resuming")
+            return sent
+        try:
+            self._call(self.set_configuration_client,
+                       configuration_request(self.robot, trajectory.sample(t)[0]))
+            self._call(self.set_stack_client, stack_request(stack))
+        except ExecutionError as error:
+            raise ExecutionError(f"pik_node restarted {where} but did not take the last "
+                                 f"commanded configuration and stack: {error}") from None
+        self._status("executing", f"pik_node restarted {where}; resuming from the last "
+                                  "commanded configuration")
+        return stack
+
+    def _transition(self, scene, planner, plan, transition):
         """(stack, held contacts' frame targets by spot) of transition `transition` (stance
-        i -> i + 1); pik_node's stack is set when it differs from `stack`."""
+        i -> i + 1)."""
         first, second = plan.stances[transition], plan.stances[transition + 1]
         moving = planner.moving_paths(first, second)
         held = [contact for contact in first.contacts if contact.spot not in moving]
         specs = execution_stack(scene, held, sorted(moving), self.gains)
-        if specs != stack:
-            self._call(self.set_stack_client, stack_request(specs))
         return specs, {contact.spot: held_frame_target(scene, contact) for contact in held}
 
     def _stream(self, q, stack, held):
@@ -312,16 +469,28 @@ class TrajectoryNode(Node):
         return msg
 
     def _call(self, client, request):
-        """Call a pik_node service from the worker (the executor handles the answer)."""
-        if not client.wait_for_service(timeout_sec=self.service_timeout):
-            raise ExecutionError(f"{client.srv_name} not available after "
-                                 f"{self.service_timeout:g} s")
-        future = client.call_async(request)
-        deadline = time.monotonic() + self.service_timeout
-        while not future.done():
-            if time.monotonic() > deadline or self._stop.is_set():
+        """Call a pik_node service from the worker (the executor handles the answer): wait
+        at most service_timeout s for the service and its answer; PikLost as soon as the
+        watch loses pik_node. Unanswered, the request is sent again every RESEND_PERIOD s:
+        after a restart the dead server still counts as available until its lease
+        expires, and a request sent before the new server matched is lost (both services
+        are idempotent)."""
+        deadline, future, sent = time.monotonic() + self.service_timeout, None, 0.0
+        while future is None or not future.done():
+            lost = self._pik.lost()
+            if lost or time.monotonic() > deadline or self._stop.is_set():
+                if future is not None:
+                    client.remove_pending_request(future)
+                if lost:
+                    raise PikLost(lost)
+                raise ExecutionError(f"no answer from {client.srv_name}" if future else
+                                     f"{client.srv_name} not available after "
+                                     f"{self.service_timeout:g} s")
+            if future is not None and time.monotonic() - sent > RESEND_PERIOD:
                 client.remove_pending_request(future)
-                raise ExecutionError(f"no answer from {client.srv_name}")
+                future = None
+            if future is None and client.service_is_ready():
+                future, sent = client.call_async(request), time.monotonic()
             time.sleep(0.002)
         response = future.result()
         if not response.success:
