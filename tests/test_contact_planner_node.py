@@ -16,7 +16,7 @@ from action_msgs.msg import GoalStatus
 from conftest import wait_until
 from contact_planner_node.conversions import (GoalRejected, contact_from_msg, contact_msg,
                                               key_postures_from_msgs)
-from contact_planner_node.worker import PlannerProcess, _descendants
+from contact_planner_node.worker import PlannerProcess, descendants
 from geometry_msgs.msg import Pose
 from helpers.probe import BackgroundNode
 from pik_node.conversions import se3_from_pose_msg
@@ -348,7 +348,7 @@ def test_a_stopped_planner_leaves_no_worker_process_behind(flat_steps):
         if time.monotonic() - began < 4.0:   # the pool is up by then
             return False
         if not started:
-            started.extend(_descendants(planner._process.pid))
+            started.extend(descendants(planner._process.pid))
         return True
 
     try:

@@ -41,6 +41,22 @@ def kill_mid_execution(probe, counts, pid, number=signal.SIGKILL):
     os.kill(pid, number)
 
 
+def start_pik_and_trajectory(processes, *parameters):
+    """(pik_node, trajectory_node with `parameters` (name:=value), probe), both publishing."""
+    pik = processes.start("pik_node", name="pik_node")
+    arguments = [argument for parameter in (f"samples_per_transition:={STEPS}", *parameters)
+                 for argument in ("-p", parameter)]
+    node = processes.start("trajectory_node", "--ros-args", *arguments, name="trajectory_node")
+    probe = TrajectoryProbe()
+    try:
+        wait_until(lambda: probe.joint_state is not None and probe.statuses, 60,
+                   what="pik_node's joint states and trajectory_node's status")
+    except BaseException:   # pytest.fail included
+        probe.close()
+        raise
+    return pik, node, probe
+
+
 def test_restarted_pik_node_execution_resumes_to_the_last_witness(processes, tmp_path, flat):
     robot, scene, plan = flat
     runner = processes.start("stance", "graph", "--graph",
@@ -87,14 +103,8 @@ def test_restarted_pik_node_execution_resumes_to_the_last_witness(processes, tmp
 def test_pik_node_not_back_in_time_stops_the_execution_and_the_node_lives_on(processes,
                                                                              flat):
     robot, scene, plan = flat
-    pik = processes.start("pik_node", name="pik_node")
-    node = processes.start("trajectory_node", "--ros-args", "-p",
-                           f"samples_per_transition:={STEPS}", "-p",
-                           "pik_restart_timeout:=1.0", name="trajectory_node")
-    probe = TrajectoryProbe()
+    pik, node, probe = start_pik_and_trajectory(processes, "pik_restart_timeout:=1.0")
     try:
-        wait_until(lambda: probe.joint_state is not None and probe.statuses, 60,
-                   what="pik_node's joint states and trajectory_node's status")
         counts = probe.counts()
         probe.publish_plan(plan_msg(robot, scene, plan))
         kill_mid_execution(probe, counts, pik.pid)
@@ -123,13 +133,8 @@ def test_pik_node_not_back_in_time_stops_the_execution_and_the_node_lives_on(pro
 
 def test_stalled_pik_node_pauses_the_execution_which_resumes(processes, flat):
     robot, scene, plan = flat
-    pik = processes.start("pik_node", name="pik_node")
-    node = processes.start("trajectory_node", "--ros-args", "-p",
-                           f"samples_per_transition:={STEPS}", name="trajectory_node")
-    probe = TrajectoryProbe()
+    pik, node, probe = start_pik_and_trajectory(processes)
     try:
-        wait_until(lambda: probe.joint_state is not None and probe.statuses, 60,
-                   what="pik_node's joint states and trajectory_node's status")
         counts = probe.counts()
         probe.publish_plan(plan_msg(robot, scene, plan))
         kill_mid_execution(probe, counts, pik.pid, signal.SIGSTOP)

@@ -303,3 +303,34 @@ def test_bad_startup_parameter_is_refused_with_its_reason(processes, parameter, 
                            name="trajectory_node")
     assert node.wait(timeout=60) == 1
     assert reason in node.log_path.read_text()
+
+
+def test_a_plan_latched_before_start_is_executed_only_when_asked(processes, flat):
+    """A restarted trajectory_node must not replay the last plan from its first witness:
+    the latched plan, stamped before the node started, is reported and not executed, unless
+    execute_latched_plan is true."""
+    robot, scene, plan = flat
+    short = Plan(plan.scene, plan.robot, plan.stances[:3])
+    probe = TrajectoryProbe()
+    try:
+        probe.plan_pub.publish(plan_msg(robot, scene, short))   # latched, nobody listens yet
+        time.sleep(0.2)
+        for execute in (False, True):
+            counts = probe.counts()
+            node = processes.start("trajectory_node", "--ros-args", "-p",
+                                   f"samples_per_transition:={STEPS}", "-p",
+                                   f"execute_latched_plan:={str(execute).lower()}",
+                                   name="trajectory_node")
+            if execute:
+                probe.wait_status(counts, "interpolating", 60)
+            else:
+                statuses = wait_until(
+                    lambda: [s for s in probe.since(counts)[2] if "not executed" in s], 60,
+                    what="the latched plan reported")
+                assert statuses[0].startswith("idle: plan on scene 'flat_steps' stamped")
+                time.sleep(1.0)
+                assert not any(s.startswith("interpolating") for s in probe.since(counts)[2])
+            os.killpg(node.pid, signal.SIGINT)
+            assert node.wait(timeout=10) == 0, node.log_path.read_text()
+    finally:
+        probe.close()

@@ -17,6 +17,7 @@ import multiprocessing
 import os
 import signal
 import time
+from dataclasses import dataclass
 
 from stance.planning.planner import CANCELLED, PlanOutcome, PlanProgress
 
@@ -105,9 +106,9 @@ class PlannerProcess:
 
     def _kill(self):
         """Kill the child and the worker processes it may have started (workers > 1)."""
-        descendants = _descendants(self._process.pid)
+        started = descendants(self._process.pid)
         self._process.kill()
-        for pid in descendants:
+        for pid in started:
             try:
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
@@ -120,9 +121,19 @@ class PlannerProcess:
         atexit.unregister(self._kill)
 
 
-def _descendants(pid: int) -> list:
-    """Pids of the live descendants of process pid (from /proc, Linux)."""
-    children = {}
+@dataclass(frozen=True)
+class ProcessEntry:
+    """One live process from /proc/<pid>/stat: parent pid, process group, and the CPU
+    time it and its reaped children used (clock ticks: utime + stime + cutime + cstime)."""
+
+    parent: int
+    group: int
+    cpu_ticks: int
+
+
+def process_table() -> dict:
+    """{pid: ProcessEntry} of the live processes (Linux /proc)."""
+    table = {}
     for entry in os.scandir("/proc"):
         if not entry.name.isdigit():
             continue
@@ -131,8 +142,17 @@ def _descendants(pid: int) -> list:
                 text = stat.read()
         except OSError:  # gone meanwhile
             continue
-        parent = int(text[text.rindex(")") + 2:].split()[1])
-        children.setdefault(parent, []).append(int(entry.name))
+        fields = text[text.rindex(")") + 2:].split()  # from field 3 (state) on
+        table[int(entry.name)] = ProcessEntry(int(fields[1]), int(fields[2]),
+                                              sum(int(value) for value in fields[11:15]))
+    return table
+
+
+def descendants(pid: int) -> list:
+    """Pids of the live descendants of process pid."""
+    children = {}
+    for child, entry in process_table().items():
+        children.setdefault(entry.parent, []).append(child)
     found, frontier = [], [pid]
     while frontier:
         kids = children.get(frontier.pop(), [])

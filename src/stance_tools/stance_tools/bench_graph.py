@@ -195,21 +195,13 @@ def _measure(nodes, pids: dict, seconds: float, wait) -> dict:
 
 def _group_ticks(pgids) -> dict:
     """{pgid: clock ticks of CPU time used so far by the live processes of that process
-    group}: utime + stime + cutime + cstime of each (reaped children count with their
-    parent), from /proc/<pid>/stat."""
+    group} (reaped children count with their parent)."""
+    from contact_planner_node.worker import process_table
+
     ticks = dict.fromkeys(pgids, 0)
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry.name}/stat") as stat:
-                text = stat.read()
-        except OSError:  # the process has gone
-            continue
-        fields = text[text.rindex(")") + 2:].split()  # from field 3 (state) on
-        pgid = int(fields[2])
-        if pgid in ticks:
-            ticks[pgid] += sum(int(value) for value in fields[11:15])  # fields 14-17
+    for entry in process_table().values():
+        if entry.group in ticks:
+            ticks[entry.group] += entry.cpu_ticks
     return ticks
 
 

@@ -35,8 +35,10 @@ rest on a witness: every stance boundary is a contact event), then the new plan 
 from its own first witness (a jump if it does not start there). A plan arriving while
 another is interpolated replaces it. A plan that cannot be converted, interpolated or
 executed is reported (status `failed`, log) and the node waits for the next one; pik_node
-then holds its last targets. The latched plan found at start-up is executed too; a plan
-equal to the last one received (header stamp included) is ignored.
+then holds its last targets. A plan stamped before the node started (the latched last
+plan, found at start-up) is not executed unless `execute_latched_plan` is true: a node
+restarted by `stance graph` must not replay the last plan from its first witness; the
+status says so. A plan equal to the last one received (header stamp included) is ignored.
 
 Topics and services (QoS in parentheses):
   sub  /contact_planner/plan         stance_msgs/StancePlan (reliable, transient local)
@@ -74,6 +76,7 @@ from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import InterpolationError, TransitionPlanner
@@ -193,6 +196,8 @@ class TrajectoryNode(Node):
         self.acceleration_limit = get("acceleration_limit").value
         self.period = 1.0 / get("rate").value
         self.service_timeout = get("service_timeout").value
+        self.execute_latched_plan = get("execute_latched_plan").value
+        self._started = self.get_clock().now()
         self.pik_restart_timeout = get("pik_restart_timeout").value
         self._pik = PikWatch(self, get("pik_status_timeout").value)
         self.gains = {name: get(f"{name}_gain").value for name in ("contact", "com", "posture")}
@@ -247,6 +252,9 @@ class TrajectoryNode(Node):
         self.declare_parameter("pik_restart_timeout", 30.0, float_parameter(
             "wait for a lost pik_node to publish again before the execution stops (s; 0: "
             "stop at once)", 0.0, 600.0))
+        self.declare_parameter("execute_latched_plan", False, ParameterDescriptor(
+            description="also execute a plan stamped before this node started (the latched "
+                        "last plan)", read_only=True))
 
     # --- inputs and worker ----------------------------------------------------------------
 
@@ -257,6 +265,13 @@ class TrajectoryNode(Node):
             self.get_logger().info("plan received again: ignored")
             return
         self._last_plan = msg
+        stamp = Time.from_msg(msg.header.stamp)
+        if not self.execute_latched_plan and 0 < stamp.nanoseconds < self._started.nanoseconds:
+            self._status("idle", f"plan on scene {msg.scene!r} stamped "
+                                 f"{(self._started - stamp).nanoseconds * 1e-9:.1f} s before "
+                                 "this node started: not executed (publish it again, or set "
+                                 "execute_latched_plan)")
+            return
         with self._wakeup:
             self._pending = msg
             self._wakeup.notify()
