@@ -164,6 +164,8 @@ def descendants(pid: int) -> list:
 def _serve(robot_spec, connection, stop):
     """Child process: load the robot, then plan each request received until EOF."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when this ends
+    from threadpoolctl import threadpool_limits
+    threadpool_limits(1)  # numeric code on one BLAS thread (workers > 1 add processes)
     from stance import Robot
     from stance.planning.planner import plan_contacts
 

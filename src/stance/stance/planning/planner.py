@@ -286,10 +286,15 @@ _WORKER = {}   # in a pool process: its posture generator and criterion
 
 
 def _start_worker(robot_spec, scene, key_postures, slope, settings):
+    """Pool worker set-up: its own generator and criterion, one BLAS thread (the pool is
+    the parallelism)."""
+    from threadpoolctl import threadpool_limits
+
     from ..robot import Robot
     from .collision import CollisionModel
     from .posture import PostureGenerator, PotentialCriterion
     from .potential import RoughTrajectory
+    threadpool_limits(1)
     robot = Robot.load(robot_spec)
     _WORKER["generator"] = PostureGenerator(robot, scene, CollisionModel(robot, scene),
                                             settings)
