@@ -33,12 +33,16 @@ def _print_run(title, outcome, seconds):
         rate = figures["successes"] / figures["calls"]
         print(f"  posture generator [{kind:6s}] calls {figures['calls']:6d}  success "
               f"{100 * rate:5.1f} %  median {1e3 * figures['median_s']:6.1f} ms  p99 "
-              f"{1e3 * figures['p99_s']:7.1f} ms")
+              f"{1e3 * figures['p99_s']:7.1f} ms  median CPU "
+              f"{1e3 * figures['median_cpu_s']:6.1f} ms")
     if "all" in statistics.get("posture_calls", {}):
-        median = statistics["posture_calls"]["all"]["median_s"]
-        print(f"  posture generator median over all calls {1e3 * median:.1f} ms: target <= "
-              f"{1e3 * POSTURE_MEDIAN_TARGET:.0f} ms "
-              f"{'PASS' if median <= POSTURE_MEDIAN_TARGET else 'FAIL'}")
+        figures = statistics["posture_calls"]["all"]
+        verdicts = [f"{what} {1e3 * figures[key]:.1f} ms "
+                    f"{'PASS' if figures[key] <= POSTURE_MEDIAN_TARGET else 'FAIL'}"
+                    for what, key in (("wall", "median_s"), ("CPU", "median_cpu_s"))]
+        print(f"  posture generator median over all calls (target <= "
+              f"{1e3 * POSTURE_MEDIAN_TARGET:.0f} ms): {', '.join(verdicts)}; wall time "
+              f"counts the waits when the planner's processes outnumber the free cores")
 
 
 def run_plan(args) -> int:

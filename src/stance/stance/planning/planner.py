@@ -139,7 +139,7 @@ class _Search:
         self.best_potential = math.inf
         self.start_time = time.perf_counter()
         self.stopped_reason = None
-        self.posture_calls = []     # (kind, success, seconds) of every posture generation
+        self.posture_calls = []     # (kind, success, wall s, CPU s) of every posture generation
         self.pool = None            # worker processes (request.workers > 1)
         self.prefetched = {}        # call key -> PostureResult computed by the pool
 
@@ -157,7 +157,7 @@ class _Search:
             result = self.generator.generate(_call_contacts(node, removed), node.q,
                                              self.criterion, free=free)
         kind = "add" if free is not None else "remove"
-        self.posture_calls.append((kind, result.success, result.seconds))
+        self.posture_calls.append((kind, result.success, result.seconds, result.cpu_seconds))
         return result if result.success else None
 
     def _must_stop(self):
@@ -373,7 +373,7 @@ def _run_search(search, generator, robot, request, scene, start, key_postures):
 
     start_q = scene.start_configuration if request.start is None else key_postures[0]
     first = generator.generate(start, start_q, ReferencePosture(robot.model, start_q))
-    search.posture_calls.append(("start", first.success, first.seconds))
+    search.posture_calls.append(("start", first.success, first.seconds, first.cpu_seconds))
     if not first.success:
         return PlanOutcome(INFEASIBLE_START, f"no posture realises the start stance: "
                                              f"{first.reason}", statistics=_statistics(search))
@@ -399,16 +399,18 @@ def _run_search(search, generator, robot, request, scene, start, key_postures):
 
 def _statistics(search) -> dict:
     """Search figures; posture_calls per kind (start, add, remove, and all of them):
-    calls, successes and the median and p99 seconds of a call."""
+    calls, successes, the median and p99 wall seconds of a call and its median CPU
+    seconds (wall time counts the waits of processes sharing the cores)."""
     by_kind = {}
     for kind in ("start", "add", "remove", "all"):
-        calls = [(ok, seconds) for k, ok, seconds in search.posture_calls
+        calls = [(ok, wall, cpu) for k, ok, wall, cpu in search.posture_calls
                  if kind in (k, "all")]
         if calls:
-            seconds = np.array([s for _, s in calls])
-            by_kind[kind] = {"calls": len(calls), "successes": sum(ok for ok, _ in calls),
-                             "median_s": float(np.median(seconds)),
-                             "p99_s": float(np.percentile(seconds, 99))}
+            wall = np.array([w for _, w, _ in calls])
+            by_kind[kind] = {"calls": len(calls), "successes": sum(ok for ok, _, _ in calls),
+                             "median_s": float(np.median(wall)),
+                             "p99_s": float(np.percentile(wall, 99)),
+                             "median_cpu_s": float(np.median([c for _, _, c in calls]))}
     return {"nodes_expanded": search.expanded,
             "posture_generations": len(search.posture_calls),
             "planning_time": time.perf_counter() - search.start_time,

@@ -93,9 +93,10 @@ class PostureResult:
     contacts: tuple                    # the requested contacts, the placed one appended
     reason: str = ""                   # why it failed ("" on success)
     iterations: int = 0
-    seconds: float = 0.0
+    seconds: float = 0.0               # wall time of the call
     criterion: float = float("nan")    # criterion value at q
     details: dict = field(default_factory=dict)
+    cpu_seconds: float = 0.0           # CPU time of the call (its thread)
 
 
 class ReferencePosture:
@@ -169,7 +170,7 @@ class PostureGenerator:
         interpolation's paths), scaled by the weight and acting only in the nullspace of the
         other contacts. A contact whose surface is None touches nothing (no collision
         ignored)."""
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.thread_time()
         budget = self.settings.time_budget if time_budget is None else time_budget
         self.calls += 1
         contacts = tuple(contacts)
@@ -200,7 +201,8 @@ class PostureGenerator:
             reason, details = self._acceptance(q, final, support, ignored)
         value = criterion.quadratic(q)[2] if criterion is not None else float("nan")
         return PostureResult(reason == "", q, final, reason, iterations,
-                             time.perf_counter() - start, value, details)
+                             time.perf_counter() - start, value, details,
+                             time.thread_time() - cpu_start)
 
     def _descend(self, q, contacts, free, v, stability, criterion, ignored, deadline):
         """Iterate from q until converged, stalled, max_iterations or the deadline
