@@ -34,7 +34,9 @@ from trajectory_msgs.msg import JointTrajectory
 
 STEPS = 10               # samples_per_transition
 JOINT_TOLERANCE = 0.05   # rad: pik_node's joints against the plan's last witness
-TRACKING_TOLERANCE = 0.15  # rad: pik_node's joints against the trajectory while it runs
+# rad: pik_node's joints against the trajectory while it runs: the lag of the IK gains at
+# velocity_scale 0.5 (0.13-0.16 rad measured on this 2-core machine; 0.15 failed 1 run in 4)
+TRACKING_TOLERANCE = 0.2
 STANCES = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 HISTORY = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -98,8 +100,11 @@ class TrajectoryProbe(BackgroundNode):
                     [s.data for s in self.statuses[counts[2]:]])
 
     def publish_plan(self, msg):
+        """Publish msg, stamped now, once trajectory_node subscribes (a plan stamped before
+        the node started is not executed)."""
         wait_until(lambda: self.plan_pub.get_subscription_count() > 0, 30,
                    what="trajectory_node's plan subscription")
+        msg.header.stamp = Time(nanoseconds=time.time_ns()).to_msg()
         self.plan_pub.publish(msg)
 
     def wait_status(self, counts, state, timeout):
@@ -308,10 +313,12 @@ def test_bad_startup_parameter_is_refused_with_its_reason(processes, parameter, 
 def test_a_plan_latched_before_start_is_executed_only_when_asked(processes, flat):
     """A restarted trajectory_node must not replay the last plan from its first witness:
     the latched plan, stamped before the node started, is reported and not executed, unless
-    execute_latched_plan is true."""
+    execute_latched_plan is true. (Another DDS domain: the module's node would take the
+    plan too.)"""
     robot, scene, plan = flat
     short = Plan(plan.scene, plan.robot, plan.stances[:3])
-    probe = TrajectoryProbe()
+    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    probe = TrajectoryProbe("latched_probe", int(domain["ROS_DOMAIN_ID"]))
     try:
         probe.plan_pub.publish(plan_msg(robot, scene, short))   # latched, nobody listens yet
         time.sleep(0.2)
@@ -320,7 +327,7 @@ def test_a_plan_latched_before_start_is_executed_only_when_asked(processes, flat
             node = processes.start("trajectory_node", "--ros-args", "-p",
                                    f"samples_per_transition:={STEPS}", "-p",
                                    f"execute_latched_plan:={str(execute).lower()}",
-                                   name="trajectory_node")
+                                   name="trajectory_node", env=domain)
             if execute:
                 probe.wait_status(counts, "interpolating", 60)
             else:
