@@ -72,9 +72,9 @@ class SpotPose:
     """A spot held at a world pose: a geometric contact for PostureGenerator (it reads
     spot, surface, in_stability and spot_target). `surface` names the surface whose
     obstacle the spot's body may touch (its collisions are ignored), or is None;
-    position_only: the orientation is free (see _PathPostureGenerator); tolerance: m and
-    rad, how far the spot may stay from `pose`; weight: of its error relative to a
-    contact's (PostureGenerator reads both)."""
+    position_only: the orientation is free; tolerance: m and rad, how far the spot may stay
+    from `pose`; weight: of its error relative to a contact's (PostureGenerator reads
+    these three)."""
 
     spot: str
     surface: str | None
@@ -86,49 +86,6 @@ class SpotPose:
 
     def spot_target(self, surface) -> pin.SE3:
         return self.pose
-
-
-class _PositionRows:
-    """A spot PoseTask with its orientation rows zeroed (Jacobian and error)."""
-
-    def __init__(self, task):
-        self.task = task
-
-    @property
-    def target(self):
-        return self.task.target
-
-    @target.setter
-    def target(self, pose):
-        self.task.target = pose
-
-    def full_error(self, robot):
-        error = self.task.full_error(robot)
-        error[3:] = 0.0
-        return error
-
-    def jacobian_and_error(self, robot, q):
-        jacobian, error = self.task.jacobian_and_error(robot, q)
-        jacobian = jacobian.copy()
-        jacobian[3:] = 0.0
-        error[3:] = 0.0
-        return jacobian, error
-
-
-class _PathPostureGenerator(PostureGenerator):
-    """PostureGenerator that holds SpotPose contacts with position_only in position only.
-    Swaps its spot tasks (PostureGenerator._spot_tasks) for the call: a public row
-    selection in posture.py would remove this."""
-
-    def generate(self, contacts, q_init, criterion, free=None, time_budget=None):
-        tasks = dict(self._spot_tasks)
-        for contact in contacts:
-            if getattr(contact, "position_only", False):
-                self._spot_tasks[contact.spot] = _PositionRows(tasks[contact.spot])
-        try:
-            return super().generate(contacts, q_init, criterion, free, time_budget)
-        finally:
-            self._spot_tasks.update(tasks)
 
 
 class SpotPath:
@@ -237,7 +194,7 @@ class TransitionPlanner:
         settings = settings or PostureSettings(time_budget=math.inf,
                                                collision_margin=SAMPLE_COLLISION_MARGIN,
                                                contact_tolerance=SAMPLE_CONTACT_TOLERANCE)
-        self.generator = _PathPostureGenerator(robot, scene, collision, settings)
+        self.generator = PostureGenerator(robot, scene, collision, settings)
 
     def moving_paths(self, first, second) -> dict:
         """{spot: (SpotPath, contact in first or None, contact in second or None)} for the

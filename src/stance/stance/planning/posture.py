@@ -169,7 +169,7 @@ class PostureGenerator:
         than settings.contact_tolerance, and a `weight` below 1: then it is a guide (the
         interpolation's paths), scaled by the weight and acting only in the nullspace of the
         other contacts. A contact whose surface is None touches nothing (no collision
-        ignored)."""
+        ignored); one with `position_only` true is held in position only (orientation free)."""
         start, cpu_start = time.perf_counter(), time.thread_time()
         budget = self.settings.time_budget if time_budget is None else time_budget
         self.calls += 1
@@ -302,9 +302,11 @@ class PostureGenerator:
         largest_excess = guide_error = 0.0
         for contact in contacts:
             jacobian, error = self._spot_tasks[contact.spot].jacobian_and_error(self.robot, q)
+            if getattr(contact, "position_only", False):
+                jacobian, error = jacobian[:3], error[:3]
             largest_excess = max(largest_excess, float(np.max(np.abs(error)))
                                  - self._extra_tolerance(contact))
-            row = np.hstack([jacobian, np.zeros((6, n - nv))])
+            row = np.hstack([jacobian, np.zeros((len(error), n - nv))])
             weight = getattr(contact, "weight", 1.0)
             if weight < 1.0:
                 guide_error = max(guide_error, float(np.max(np.abs(error))))
@@ -417,7 +419,8 @@ class PostureGenerator:
         for contact in contacts:
             task = self._spot_tasks[contact.spot]
             task.target = contact.spot_target(self.scene.surfaces.get(contact.surface))
-            error = float(np.max(np.abs(task.full_error(self.robot))))
+            rows = 3 if getattr(contact, "position_only", False) else 6
+            error = float(np.max(np.abs(task.full_error(self.robot)[:rows])))
             worst = max(worst, error)
             allowed = settings.contact_tolerance + self._extra_tolerance(contact)
             if error > allowed and (missed is None or error > missed[1]):
