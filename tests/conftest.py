@@ -36,3 +36,17 @@ def wait_until(predicate, timeout, period=0.02, what="condition"):
             return value
         time.sleep(period)
     pytest.fail(f"timed out after {timeout:.1f} s waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def flat_steps_plan():
+    """(robot, scene, plan) of flat_steps (the library's own planner)."""
+    from stance import Robot
+    from stance.planning.planner import PlanRequest, plan_contacts
+    from stance.planning.scene import load_scene
+
+    robot = Robot.load("talos")
+    scene = load_scene("flat_steps", robot)
+    outcome = plan_contacts(robot, PlanRequest(scene=scene, ordered_sons=True))
+    assert outcome.success, outcome.message
+    return robot, scene, outcome.plan

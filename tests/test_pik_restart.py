@@ -13,8 +13,8 @@ import pytest
 from conftest import wait_until
 from stance.planning.contacts import Plan
 from test_graph import log_has, started_pids, write_graph
-from test_trajectory_node import (JOINT_TOLERANCE, STEPS, TrajectoryProbe,  # noqa: F401
-                                  flat, plan_msg, stamp_seconds)
+from test_trajectory_node import (JOINT_TOLERANCE, STEPS, TrajectoryProbe, plan_msg,
+                                  stamp_seconds)
 
 KILL_AT_STANCE = 8  # pik_node is killed once stance KILL_AT_STANCE is announced (of 28)
 # pik_node restarted once, soon; the others are never restarted (a crash stays visible)
@@ -57,8 +57,9 @@ def start_pik_and_trajectory(processes, *parameters):
     return pik, node, probe
 
 
-def test_restarted_pik_node_execution_resumes_to_the_last_witness(processes, tmp_path, flat):
-    robot, scene, plan = flat
+def test_restarted_pik_node_execution_resumes_to_the_last_witness(processes, tmp_path,
+                                                                  flat_steps_plan):
+    robot, scene, plan = flat_steps_plan
     runner = processes.start("stance", "graph", "--graph",
                              str(write_graph(tmp_path, GRAPH)), name="graph")
     probe = TrajectoryProbe()
@@ -100,9 +101,9 @@ def test_restarted_pik_node_execution_resumes_to_the_last_witness(processes, tmp
         probe.close()
 
 
-def test_pik_node_not_back_in_time_stops_the_execution_and_the_node_lives_on(processes,
-                                                                             flat):
-    robot, scene, plan = flat
+def test_pik_node_not_back_in_time_stops_the_execution_and_the_node_lives_on(
+        processes, flat_steps_plan):
+    robot, scene, plan = flat_steps_plan
     pik, node, probe = start_pik_and_trajectory(processes, "pik_restart_timeout:=1.0")
     try:
         counts = probe.counts()
@@ -131,8 +132,8 @@ def test_pik_node_not_back_in_time_stops_the_execution_and_the_node_lives_on(pro
         probe.close()
 
 
-def test_stalled_pik_node_pauses_the_execution_which_resumes(processes, flat):
-    robot, scene, plan = flat
+def test_stalled_pik_node_pauses_the_execution_which_resumes(processes, flat_steps_plan):
+    robot, scene, plan = flat_steps_plan
     pik, node, probe = start_pik_and_trajectory(processes)
     try:
         counts = probe.counts()

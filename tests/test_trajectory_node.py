@@ -20,13 +20,10 @@ from pik_node.node import LATCHED
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
-from stance import Robot
 from stance.execution.interpolation import TransitionPlanner
 from stance.execution.timing import time_optimal_trajectory
 from stance.planning.collision import CollisionModel
 from stance.planning.contacts import Plan
-from stance.planning.planner import PlanRequest, plan_contacts
-from stance.planning.scene import load_scene
 from stance_msgs.msg import ContactStance, StancePlan
 from stance_tools.processes import ProcessGroup
 from std_msgs.msg import String
@@ -126,16 +123,6 @@ class TrajectoryProbe(BackgroundNode):
 
 
 @pytest.fixture(scope="module")
-def flat():
-    """(robot, scene, plan) of flat_steps (the library's own planner)."""
-    robot = Robot.load("talos")
-    scene = load_scene("flat_steps", robot)
-    outcome = plan_contacts(robot, PlanRequest(scene=scene, ordered_sons=True))
-    assert outcome.success, outcome.message
-    return robot, scene, outcome.plan
-
-
-@pytest.fixture(scope="module")
 def graph(tmp_path_factory):
     """pik_node and trajectory_node (n = STEPS) for the module, and the probe."""
     group = ProcessGroup(tmp_path_factory.mktemp("trajectory"))
@@ -169,9 +156,9 @@ def stamp_seconds(msg):
     return seconds(msg.header.stamp)
 
 
-def test_flat_steps_plan_is_executed_through_pik_node(graph, flat):
+def test_flat_steps_plan_is_executed_through_pik_node(graph, flat_steps_plan):
     node, probe = graph
-    robot, scene, plan = flat
+    robot, scene, plan = flat_steps_plan
     count = len(plan.stances)
     counts = probe.counts()
     probe.publish_plan(plan_msg(robot, scene, plan))
@@ -216,9 +203,10 @@ def test_flat_steps_plan_is_executed_through_pik_node(graph, flat):
     ("unknown scene", ["scene", "no_such_scene"]),
     ("missing joint", ["stances[0].witness_joints", "missing"]),
 ])
-def test_bad_plan_fails_with_its_reason_and_the_node_lives_on(graph, flat, case, words):
+def test_bad_plan_fails_with_its_reason_and_the_node_lives_on(graph, flat_steps_plan, case,
+                                                              words):
     node, probe = graph
-    robot, scene, plan = flat
+    robot, scene, plan = flat_steps_plan
     msg = plan_msg(robot, scene, plan)
     if case == "empty":
         msg.stances = []
@@ -240,9 +228,9 @@ def test_bad_plan_fails_with_its_reason_and_the_node_lives_on(graph, flat, case,
     assert node.poll() is None
 
 
-def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat):
+def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat_steps_plan):
     node, probe = graph
-    robot, scene, plan = flat
+    robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:3])
     counts = probe.counts()
     probe.publish_plan(plan_msg(robot, scene, plan))
@@ -264,10 +252,11 @@ def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat):
     assert node.poll() is None
 
 
-def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(processes, flat):
+def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(processes,
+                                                                         flat_steps_plan):
     """Its own pik_node and trajectory_node in another DDS domain (the module's pair would
     take the plan too)."""
-    robot, scene, plan = flat
+    robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:3])
     domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
     processes.start("pik_node", name="pik_node", env=domain)
@@ -310,12 +299,13 @@ def test_bad_startup_parameter_is_refused_with_its_reason(processes, parameter, 
     assert reason in node.log_path.read_text()
 
 
-def test_a_plan_latched_before_start_is_executed_only_when_asked(processes, flat):
+def test_a_plan_latched_before_start_is_executed_only_when_asked(processes,
+                                                                 flat_steps_plan):
     """A restarted trajectory_node must not replay the last plan from its first witness:
     the latched plan, stamped before the node started, is reported and not executed, unless
     execute_latched_plan is true. (Another DDS domain: the module's node would take the
     plan too.)"""
-    robot, scene, plan = flat
+    robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:3])
     domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
     probe = TrajectoryProbe("latched_probe", int(domain["ROS_DOMAIN_ID"]))
