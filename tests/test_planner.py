@@ -146,3 +146,40 @@ def test_plan_check_and_plot_from_the_command_line(tmp_path):
                              capture_output=True, text=True, timeout=300)
     assert plotted.returncode == 0, plotted.stderr
     assert sheet.stat().st_size > 10_000
+
+
+@pytest.fixture(scope="module")
+def chair_search(robot):
+    """A search on the chair scene (no collision model: only the spots' kinematics)."""
+    from stance.planning.posture import PostureGenerator
+    chair = load_scene("chair_table", robot)
+    request = PlanRequest(scene=chair)
+    return planner._Search(robot, request, PostureGenerator(robot, chair), None, None, None)
+
+
+def test_chain_dofs_count_the_joints_between_spots_on_one_branch(chair_search):
+    chain_dofs = chair_search.generator.chain_dofs
+    assert chain_dofs("left_sole", "left_thigh") == chain_dofs("left_thigh", "left_sole") == 3
+    assert chain_dofs("left_hand", "left_forearm") == 2
+    assert chain_dofs("left_sole", "right_sole") == float("inf")
+    assert chain_dofs("left_hand", "left_sole") == float("inf")
+
+
+def seated(scene, *geometric):
+    """The chair scene's start contacts, the named spots kept geometric only."""
+    return tuple(Contact(c.spot, c.surface, c.x, c.y, c.theta, c.spot not in geometric)
+                 for c in scene.start)
+
+
+def test_a_sole_is_not_placed_while_its_thigh_holds(chair_search):
+    """Re-placing a sole under a thigh held on the seat has no executable transition (the
+    sole reaches two places only, the way between them runs through the floor)."""
+    search, chair = chair_search, chair_search.scene
+    start = chair.start_configuration
+    lifted_sole = planner._Node(seated(chair, "left_sole"), start, 0.0, None)
+    assert not search._placeable("left_sole", lifted_sole)
+    assert search._placeable("left_hand", lifted_sole)
+    lifted_thigh = planner._Node(seated(chair, "left_sole", "left_thigh"), start, 0.0, None)
+    assert search._placeable("left_sole", lifted_thigh)
+    assert not search._placeable("right_sole", lifted_thigh)
+    assert not search._placeable("right_thigh", lifted_thigh)

@@ -5,7 +5,9 @@ posture; its sons' supporting sets differ from its own by one contact (section 2
 - removing contact c: a posture with every contact of the set, c no longer in stability
   (checked at the instant c is broken); the son supports on the set without c, and its
   stance keeps c as a geometric contact (in_stability False): the witness still touches it;
-- adding a contact of a free spot R on a surface E: the posture generator places it, with
+- adding a contact of a free spot R on a surface E (not while a supporting contact holds a
+  body within fewer than 6 DoFs of R: the transition could not be executed, see
+  `_Search._placeable`): the posture generator places it, with
   the potential f_T as criterion, inside a convex search volume of E x ]-pi, pi] (2.5-2.6),
   the new contact not yet in stability; a volume around the found contact is then cut out
   and the rest split into convex parts for the next son of the same pair.
@@ -201,9 +203,8 @@ class _Search:
         from .posture import FreeContact
         supporting = node.supporting
         removals = supporting if len(supporting) > 1 else ()
-        used_spots = {c.spot for c in supporting}
         pairs = [_PairSons(node, spot.name, surface.name, [initial_volume(surface.polygon)])
-                 for spot in self.scene.spots.values() if spot.name not in used_spots
+                 for spot in self.scene.spots.values() if self._placeable(spot.name, node)
                  for surface in self.scene.surfaces.values()
                  if not spot.surfaces or surface.name in spot.surfaces]
         self.prefetch(node, removals, [FreeContact(pair.spot, pair.surface, pair.volumes[0])
@@ -214,6 +215,15 @@ class _Search:
                 self.add_leaf(result.contacts, result.q, node)
         for pair in pairs:
             self._pair_sons(pair, node)
+
+    def _placeable(self, spot, node) -> bool:
+        """Whether a son may place `spot`: it supports nothing yet, and no supporting
+        contact holds a body within fewer than 6 DoFs of it. A sole re-placed under a thigh
+        held on a seat can only reach the two places where its ankle's circle about the
+        knee meets the floor, and the way between them runs through the floor: the robot
+        must lift the thigh first."""
+        return all(contact.spot != spot and self.generator.chain_dofs(spot, contact.spot) >= 6
+                   for contact in node.supporting)
 
     def prefetch(self, node, removals, frees):
         """With a worker pool: generate the node's removal sons and each pair's first son

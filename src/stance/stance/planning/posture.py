@@ -161,6 +161,21 @@ class PostureGenerator:
         self.calls = 0
 
     # ----------------------------------------------------------------- public API
+    def chain_dofs(self, spot_a: str, spot_b: str) -> float:
+        """Unlocked DoFs of the joints between two spots when one lies on the other's
+        kinematic branch (a sole and the thigh above it: knee and ankle, 3), inf when they
+        are on different branches. Fewer than 6: neither spot can take an arbitrary pose
+        while the other is held."""
+        joint_a, joint_b = (self.model.frames[self.model.getFrameId(f"spot:{spot}")].parentJoint
+                            for spot in (spot_a, spot_b))
+        upper, lower = sorted((joint_a, joint_b), key=lambda j: len(self.model.supports[j]))
+        branch = list(self.model.supports[lower])
+        if upper not in branch:
+            return math.inf
+        locked = set(self.scene.locked_joints)
+        return sum(self.model.joints[j].nv for j in branch[branch.index(upper) + 1:]
+                   if self.model.names[j] not in locked)
+
     def generate(self, contacts, q_init: np.ndarray, criterion, free: FreeContact | None = None,
                  time_budget: float | None = None) -> PostureResult:
         """Search a posture for `contacts` (plus `free` being placed) from q_init.
