@@ -79,7 +79,9 @@ def run_interpolate(args) -> int:
     for index, entry in enumerate(figures):
         if entry["ok"]:
             detour = "" if entry["detour_from"] is None else \
-                f"  detour from sample {entry['detour_from']}"
+                f"  detour from sample {entry['detour_from']:g}"
+            if entry["subdivided"]:
+                detour += f"  {entry['subdivided']} steps halved"
             print(f"  {index:3d} -> {index + 1:3d}  moving {','.join(entry['moving']) or '-':28s}"
                   f" generations {entry['generations']:3d}  iterations "
                   f"{entry['iterations']:4d}  {1e3 * entry['seconds']:7.1f} ms{detour}")
@@ -91,7 +93,8 @@ def run_interpolate(args) -> int:
           f"max {max(totals):.2f}); per transition median {1e3 * np.median(seconds):.1f} ms, "
           f"max {1e3 * max(seconds):.1f} ms; {len(failed)} failed transitions "
           f"{failed if failed else ''}; "
-          f"{sum(entry.get('detour_from') is not None for entry in figures)} detours")
+          f"{sum(entry.get('detour_from') is not None for entry in figures)} detours, "
+          f"{sum(entry.get('subdivided', 0) for entry in figures)} steps halved")
     print(f"first (cold) run {totals[0]:.2f} s: the static equilibrium regions of the "
           f"support sets are computed then and cached for the later runs")
     result = {"scene": plan.scene, "steps": args.steps, "lift": args.lift,

@@ -6,7 +6,9 @@ For each transition (stance S1 with witness q1 -> stance S2 with witness q2):
 - a spot whose contact is geometrically created, broken or changed moves along
   `SpotPath`: a straight line of `lift` m along the old surface's normal when it leaves a
   contact, a straight line along the new surface's normal when it enters one, a C1 cubic
-  spline between; orientation constant on the lines, slerp along the spline. The plan
+  spline between (through a via point at the approach height when one end lies below the
+  other's approach plane: the body rises before it crosses a surface's edge); orientation
+  constant on the lines, slerp along the spline. The plan
   can move two spots in one transition (a contact kept geometric after its removal is
   dropped while another spot is placed): each then has its own path;
 - the transition is cut in n steps; the n - 1 interior samples are posture generations
@@ -31,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
-from scipy.interpolate import make_interp_spline
+from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..planning.posture import PostureGenerator, PostureSettings, ReferencePosture
@@ -55,7 +57,9 @@ SPLINE_TOLERANCE = 0.08
 DETOUR_LINE_TOLERANCE = 0.01
 FUNNEL_SLOPE = 3.0  # m of allowance per m along the path from where the spline ends
 TOUCH_DISTANCE = 0.01  # m along the path: a moving body may touch its contact's surface
-PATH_WEIGHT = 1e-2  # of a moving spot's path error relative to a held contact's error
+VIA_MIN_RISE = 0.01  # m: an end this far below the other's approach plane gets a via point
+PATH_WEIGHT = 1e-2
+SUBDIVISIONS = 3  # levels of halved steps through which a failing sample is approached  # of a moving spot's path error relative to a held contact's error
 
 
 class InterpolationError(RuntimeError):
@@ -73,7 +77,7 @@ class SpotPose:
     spot, surface, in_stability and spot_target). `surface` names the surface whose
     obstacle the spot's body may touch (its collisions are ignored), or is None;
     position_only: the orientation is free; tolerance: m and rad, how far the spot may stay
-    from `pose`; weight: of its error relative to a contact's (PostureGenerator reads
+    from `pose` (per axis); weight: of its error relative to a contact's (PostureGenerator reads
     these three)."""
 
     spot: str
@@ -104,12 +108,20 @@ class SpotPath:
         last = end.translation + (lift * enter_normal if enter_normal is not None else 0.0)
         self.leave_length = lift if leave_normal is not None else 0.0
         self.enter_length = lift if enter_normal is not None else 0.0
-        self.spline_length = max(float(np.linalg.norm(last - first)), lift, 1e-6)
-        # end conditions: unit tangent where a line joins (C1), else natural (zero curvature)
-        left = [(1, leave_normal)] if leave_normal is not None else [(2, np.zeros(3))]
-        right = [(1, -enter_normal)] if enter_normal is not None else [(2, np.zeros(3))]
-        self.spline = make_interp_spline([0.0, self.spline_length], np.vstack([first, last]),
-                                         k=3, bc_type=(left, right))
+        points = _spline_points(first, last, leave_normal, enter_normal)
+        chords = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        knots = np.concatenate([[0.0], np.cumsum(chords)])
+        if knots[-1] < lift:  # a short hop: stretch the parameter, keep the unit tangents
+            knots *= max(lift, 1e-6) / max(knots[-1], 1e-12)
+        self.spline_length = float(knots[-1])
+        # Hermite tangents: the unit normal where a line joins (C1), the chord direction at
+        # a free end, central differences at a via point (no overshoot past the corners)
+        tangents = np.gradient(points, knots, axis=0, edge_order=1)
+        tangents[0] = leave_normal if leave_normal is not None else _unit(tangents[0])
+        tangents[-1] = -enter_normal if enter_normal is not None else _unit(tangents[-1])
+        if len(points) > 2:
+            tangents[1:-1] = (points[2:] - points[:-2]) / (knots[2:] - knots[:-2])[:, None]
+        self.spline = CubicHermiteSpline(knots, points, tangents)
         self.leave_normal, self.enter_normal = leave_normal, enter_normal
         self.slerp = Slerp([0.0, 1.0], Rotation.from_matrix(
             np.stack([start.rotation, end.rotation])))
@@ -134,6 +146,25 @@ class SpotPath:
         if u < self.leave_length:
             return "leave"
         return "enter" if u > self.leave_length + self.spline_length else "spline"
+
+
+def _unit(vector: np.ndarray) -> np.ndarray:
+    return vector / max(float(np.linalg.norm(vector)), 1e-12)
+
+
+def _spline_points(first, last, leave_normal, enter_normal) -> np.ndarray:
+    """Points the spline passes through (world, m): the ends of the straight lines and,
+    where an end lies below the other end's approach plane (the plane through it normal to
+    its surface), a via point over that end on the plane, so the body rises clear of the
+    surface's edge before it crosses (a hand from the hip onto a table top, a sole up onto
+    a step) and descends only once past it (a sole down from a step)."""
+    points = [first]
+    if enter_normal is not None and enter_normal @ (first - last) < -VIA_MIN_RISE:
+        points.append(first - (enter_normal @ (first - last)) * enter_normal)
+    if leave_normal is not None and leave_normal @ (last - first) < -VIA_MIN_RISE:
+        points.append(last - (leave_normal @ (last - first)) * leave_normal)
+    points.append(last)
+    return np.vstack(points)
 
 
 @dataclass(frozen=True)
@@ -221,11 +252,15 @@ class TransitionPlanner:
 
     def transition(self, index: int, first, second):
         """(interior samples (n - 1, nq), statistics dict) from stance `first` to `second`;
-        raises InterpolationError when a sample fails on the path and on its detour.
+        raises InterpolationError when a sample fails on the path and on its detour, even
+        when approached through SUBDIVISIONS levels of halved steps.
 
         From the first sample the path blocks (collisions, stability or joint limits), the
         transition takes a detour: the spline is then a guide only (any distance from it)
-        and position-only spots may leave their lines by SPLINE_TOLERANCE."""
+        and position-only spots may leave their lines by SPLINE_TOLERANCE. A sample that
+        fails from the previous one is approached through intermediate samples (warm starts
+        only, not returned): a large step between samples takes the linearised collision
+        and contact rows too far from where they hold."""
         model, steps = self.generator.model, self.steps
         second_places = {_place(c) for c in second.contacts}
         common = tuple(c.with_stability(True) for c in first.contacts
@@ -233,32 +268,22 @@ class TransitionPlanner:
         paths = self.moving_paths(first, second)
         position_only = self._position_only(paths, common)
         began = time.perf_counter()
-        q, previous, samples, iterations, detour_from = first.q, first.q, [], 0, None
+        sampler = _Sampler(self, first, second, common, paths, position_only)
+        q, previous, samples = first.q, first.q, []
         for k in range(1, steps):
-            s = k / steps
-            criterion = ReferencePosture(model, pin.interpolate(model, first.q, second.q, s),
-                                         self.criterion_weight)
             # warm start: the previous sample moved on by the last sample's step
             guess = pin.integrate(model, q, pin.difference(model, previous, q))
-            for detour in ((False, True) if detour_from is None else (True,)):
-                held = tuple(SpotPose(spot, self._touched_surface(path, before, after, s),
-                                      path.pose(s), spot in position_only,
-                                      self._tolerance(path, s, spot in position_only,
-                                                      detour), PATH_WEIGHT)
-                             for spot, (path, before, after) in paths.items())
-                result = self.generator.generate(common + held, guess, criterion)
-                iterations += result.iterations
-                if result.success:
-                    break
+            result = sampler.reach((k - 1) / steps, q, k / steps, guess, SUBDIVISIONS)
             if not result.success:
                 raise InterpolationError(index, k, steps, result.reason)
-            if detour and detour_from is None:
-                detour_from = k
             previous, q = q, result.q
             samples.append(q)
+        detour_from = None if sampler.detour_from is None else \
+            round(sampler.detour_from * steps, 3)
         statistics = {"moving": sorted(paths), "position_only": sorted(position_only),
-                      "detour_from": detour_from, "generations": len(samples),
-                      "iterations": iterations, "seconds": time.perf_counter() - began}
+                      "detour_from": detour_from, "generations": sampler.generations,
+                      "subdivided": sampler.subdivided, "iterations": sampler.iterations,
+                      "seconds": time.perf_counter() - began}
         return np.reshape(samples, (steps - 1, model.nq)), statistics
 
     @staticmethod
@@ -278,23 +303,12 @@ class TransitionPlanner:
         return line
 
     def _position_only(self, paths, common) -> set:
-        """Moving spots on the same kinematic branch as another held spot with fewer than
-        6 DoFs between them (a 6-D pose relative to it is then generally unreachable)."""
-        model = self.generator.model
-
-        def joint(spot):
-            return model.frames[model.getFrameId(f"spot:{spot}")].parentJoint
-
-        def chain_dofs(moving, held):
-            upper, lower = sorted((moving, held), key=lambda j: len(model.supports[j]))
-            branch = list(model.supports[lower])
-            if upper not in branch:
-                return math.inf
-            return sum(model.joints[j].nv for j in branch[branch.index(upper) + 1:])
-
-        held = [joint(c.spot) for c in common] + [joint(spot) for spot in paths]
+        """Moving spots within fewer than 6 DoFs of another held or moving spot (a 6-D
+        pose relative to it is then generally unreachable)."""
+        others = [c.spot for c in common] + list(paths)
         return {spot for spot in paths
-                if any(chain_dofs(joint(spot), j) < 6 for j in held if j != joint(spot))}
+                if any(self.generator.chain_dofs(spot, other) < 6
+                       for other in others if other != spot)}
 
     @staticmethod
     def _touched_surface(path, before, after, s):
@@ -315,6 +329,54 @@ class TransitionPlanner:
         results = [self.transition(index, first, second)
                    for index, (first, second) in enumerate(zip(stances[:-1], stances[1:]))]
         return assemble(stances, self.steps, results)
+
+
+class _Sampler:
+    """Posture generations along one transition (TransitionPlanner.transition): the held
+    contacts, each moving spot on its path, the interpolated witnesses as criterion."""
+
+    def __init__(self, planner, first, second, common, paths, position_only):
+        self.planner, self.first, self.second = planner, first, second
+        self.common, self.paths, self.position_only = common, paths, position_only
+        self.detour_from = None         # s of the first sample off the exact path
+        self.generations = self.iterations = self.subdivided = 0
+
+    def reach(self, s_from: float, q_from: np.ndarray, s_to: float, guess: np.ndarray,
+              depth: int):
+        """PostureResult at s_to, from the posture q_from at s_from; on failure, through
+        the midpoint first, `depth` times at most."""
+        result = self.sample(s_to, guess)
+        if result.success or depth == 0:
+            return result
+        middle = 0.5 * (s_from + s_to)
+        halfway = self.reach(s_from, q_from, middle, q_from, depth - 1)
+        if not halfway.success:
+            return result
+        self.subdivided += 1
+        model = self.planner.generator.model
+        onward = pin.integrate(model, halfway.q, pin.difference(model, q_from, halfway.q))
+        return self.reach(middle, halfway.q, s_to, onward, depth - 1)
+
+    def sample(self, s: float, guess: np.ndarray):
+        """PostureResult at s: on the exact path, else (and from then on) on the detour."""
+        planner = self.planner
+        model = planner.generator.model
+        criterion = ReferencePosture(model, pin.interpolate(model, self.first.q, self.second.q,
+                                                            s), planner.criterion_weight)
+        for detour in ((False, True) if self.detour_from is None else (True,)):
+            held = tuple(SpotPose(spot, planner._touched_surface(path, before, after, s),
+                                  path.pose(s), spot in self.position_only,
+                                  planner._tolerance(path, s, spot in self.position_only,
+                                                     detour), PATH_WEIGHT)
+                         for spot, (path, before, after) in self.paths.items())
+            result = planner.generator.generate(self.common + held, guess, criterion)
+            self.generations += 1
+            self.iterations += result.iterations
+            if result.success:
+                if detour and self.detour_from is None:
+                    self.detour_from = s
+                return result
+        return result
 
 
 def assemble(stances, steps: int, results) -> InterpolatedPlan:
