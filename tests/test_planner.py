@@ -69,6 +69,48 @@ def test_a_worker_pool_gives_the_same_plan(robot, scene, outcome):
         np.testing.assert_allclose(ours.q, theirs.q, atol=1e-7)
 
 
+def test_every_expanded_stance_had_its_transition_interpolated(outcome):
+    statistics = outcome.statistics
+    assert statistics["transitions_checked"] >= statistics["nodes_expanded"] - 1
+    assert statistics["transitions_rejected"] == 0
+
+
+def test_a_stance_whose_transition_fails_is_not_expanded(robot, scene, monkeypatch):
+    """The first transition that moves the left sole is refused: that stance is dropped
+    (never part of the plan) and the search finds another way."""
+    from stance.execution import interpolation
+    original, refused = interpolation.TransitionPlanner.transition, []
+
+    def transition(self, index, first, second):
+        if not refused and "left_sole" in self.moving_paths(first, second):
+            refused.append(second)
+            raise interpolation.InterpolationError(index, 1, self.steps, "refused (test)")
+        return original(self, index, first, second)
+
+    monkeypatch.setattr(interpolation.TransitionPlanner, "transition", transition)
+    result = plan_contacts(robot, PlanRequest(scene=scene, max_nodes=200, time_budget=120.0))
+    assert result.success, result.message
+    assert result.statistics["transitions_rejected"] == 1
+    assert all(stance.contacts != refused[0].contacts or
+               not np.array_equal(stance.q, refused[0].q) for stance in result.plan.stances)
+
+
+def test_worker_processes_give_the_same_search_every_run(robot):
+    """On the chair, where the search amplifies rounding, two runs with two worker
+    processes expand the same nodes with the same posture generations: each worker gets the
+    same calls in the same order whatever their timing (coal's per-pair state makes a
+    posture depend on its generator's history to rounding)."""
+    def search():
+        request = PlanRequest(scene=load_scene("chair_table", robot), max_nodes=120,
+                              time_budget=300.0, workers=2)
+        statistics = plan_contacts(robot, request).statistics
+        return (statistics["posture_generations"],
+                statistics["posture_calls"]["all"]["successes"],
+                statistics["posture_calls"]["add"]["successes"])
+
+    assert search() == search()
+
+
 def test_ordered_sons_need_fewer_posture_generations_per_node(robot, scene, outcome):
     """Section 2.8: one leaf per (spot, surface) pair instead of every son at once."""
     unordered = plan_contacts(robot, PlanRequest(scene=scene, max_nodes=200, time_budget=120.0,

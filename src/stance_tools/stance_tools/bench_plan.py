@@ -29,6 +29,10 @@ def _print_run(title, outcome, seconds):
     print(f"  nodes expanded {statistics.get('nodes_expanded', 0)}, posture generations "
           f"{statistics.get('posture_generations', 0)}, stances "
           f"{statistics.get('stances', 0)}, wall time {seconds:.1f} s")
+    if statistics.get("transitions_checked"):
+        print(f"  transitions interpolated before expansion {statistics['transitions_checked']}"
+              f", rejected {statistics['transitions_rejected']}, "
+              f"{statistics['transition_check_time']:.1f} s")
     for kind, figures in statistics.get("posture_calls", {}).items():
         rate = figures["successes"] / figures["calls"]
         print(f"  posture generator [{kind:6s}] calls {figures['calls']:6d}  success "

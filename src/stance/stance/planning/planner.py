@@ -17,6 +17,10 @@ because the generator returns a pair's sons best first. Without it every son of 
 is generated when a node is expanded (up to MAX_SONS_PER_PAIR). New leaves too close to an
 existing stance (same pairs, every contact within CLOSENESS) are discarded.
 
+Beyond the paper: before a leaf is expanded, the transition from its parent is interpolated
+as trajectory_node will interpolate it (`transition_steps` samples); a leaf whose transition
+fails is dropped, so every transition of a returned plan can be executed.
+
 plan_contacts never raises for planning failures: it returns a PlanOutcome with a reason.
 Everything is deterministic (posture generations are capped in iterations, not time), so
 the same request gives the same plan; the wall-time budget only ends the search.
@@ -59,6 +63,9 @@ class PlanRequest:
     slope: float | None = None          # k of f_T (eq. 1), f units per m along T';
                                         # None: the scene's potential_slope
     workers: int = 1                    # processes generating a node's first sons together
+    transition_steps: int = 20          # n of the trajectory interpolation that each stance's
+                                        # incoming transition must pass before the stance is
+                                        # expanded (0: unchecked); see _Search.executable
 
 
 @dataclass
@@ -142,8 +149,10 @@ class _Search:
         self.start_time = time.perf_counter()
         self.stopped_reason = None
         self.posture_calls = []     # (kind, success, wall s, CPU s) of every posture generation
-        self.pool = None            # worker processes (request.workers > 1)
+        self.pool = []              # one-process executors (request.workers > 1)
         self.prefetched = {}        # call key -> PostureResult computed by the pool
+        self.transitions = None     # execution.interpolation.TransitionPlanner, or None
+        self.transition_checks = []  # (executable, s) of every transition checked
 
     # --------------------------------------------------------------- posture calls
     def generate(self, node, free=None, removed=None):
@@ -226,16 +235,20 @@ class _Search:
                    for contact in node.supporting)
 
     def prefetch(self, node, removals, frees):
-        """With a worker pool: generate the node's removal sons and each pair's first son
-        at once, in parallel; `generate` then takes these results in its usual order."""
-        if self.pool is None or self._must_stop():
+        """With worker processes: generate the node's removal sons and each pair's first son
+        at once, in parallel; `generate` then takes these results in its usual order.
+        Call i goes to worker i mod workers, so every worker sees the same calls in every
+        run: a posture depends on its generator's history to rounding (coal keeps state per
+        collision pair), and the search amplifies rounding, so a schedule that depended on
+        timing would not give the same plan twice."""
+        if not self.pool or self._must_stop():
             return
         calls = [(None, removed) for removed in removals] + [(free, None) for free in frees]
-        results = self.pool.map(_pooled_generate,
-                                [(_call_contacts(node, removed), node.q, free)
-                                 for free, removed in calls])
-        self.prefetched = {_call_key(free, removed): result
-                           for (free, removed), result in zip(calls, results)}
+        futures = [self.pool[index % len(self.pool)].submit(
+                       _pooled_generate, (_call_contacts(node, removed), node.q, free))
+                   for index, (free, removed) in enumerate(calls)]
+        self.prefetched = {_call_key(free, removed): future.result()
+                           for (free, removed), future in zip(calls, futures)}
 
     def _pair_sons(self, pair, node):
         """Ordered mode: the pair's next son only; otherwise up to MAX_SONS_PER_PAIR."""
@@ -258,6 +271,10 @@ class _Search:
             if self.expanded >= self.request.max_nodes:
                 return None, BUDGET_EXHAUSTED
             _, _, node = heapq.heappop(self.leaves)
+            if not self.executable(node):
+                if node.pair_source is not None:
+                    self._pair_sons(node.pair_source, node.parent)
+                continue
             self.expanded += 1
             self.best_potential = min(self.best_potential, node.potential)
             if self._goal_reached(node.q):
@@ -268,6 +285,27 @@ class _Search:
             if self.progress is not None:
                 self.progress(self.snapshot())
         return None, self.stopped_reason or NO_PATH
+
+    def executable(self, node) -> bool:
+        """Whether the transition from node's parent to node interpolates as the trajectory
+        node will interpolate it (beyond the paper, which corrected such paths by hand): a
+        stance whose incoming transition fails (a foot that cannot pass a table leg, a
+        guide that the collision rows hold in a dead end) is dropped before expansion, as
+        lazy planners drop an edge found in collision only when they need it."""
+        if self.transitions is None or node.parent is None:
+            return True
+        from ..execution.interpolation import InterpolationError
+        from .contacts import Stance
+        began = time.perf_counter()
+        try:
+            self.transitions.transition(node.depth - 1, Stance(node.parent.contacts,
+                                                               node.parent.q),
+                                        Stance(node.contacts, node.q))
+            executable = True
+        except InterpolationError:
+            executable = False
+        self.transition_checks.append((executable, time.perf_counter() - began))
+        return executable
 
     def _goal_reached(self, q):
         goal = self.request.goal
@@ -338,7 +376,8 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
 
     robot: stance.robot.Robot of the scene; progress(PlanProgress) is called after each
     expansion; should_stop() is polled between posture generations (cancel). collision:
-    a CollisionModel to reuse (built from the scene otherwise); settings: PostureSettings.
+    a CollisionModel to reuse (built from the scene otherwise; its history shifts postures
+    by rounding, so a reused one may not reproduce a fresh plan); settings: PostureSettings.
     """
     from .collision import CollisionModel
     from .contacts import Contact
@@ -362,18 +401,22 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
     trajectory = RoughTrajectory(robot.model, np.asarray(key_postures), k=slope)
     search = _Search(robot, request, generator, trajectory, progress, should_stop)
     search.criterion = PotentialCriterion(trajectory)
+    if request.transition_steps > 0:
+        from ..execution.interpolation import TransitionPlanner
+        search.transitions = TransitionPlanner(robot, scene, collision,
+                                               steps=request.transition_steps)
     if request.workers > 1:
         import concurrent.futures
         import multiprocessing
-        search.pool = concurrent.futures.ProcessPoolExecutor(
-            request.workers, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_start_worker,
+        search.pool = [concurrent.futures.ProcessPoolExecutor(
+            1, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
             initargs=(scene.robot, scene, np.asarray(key_postures), slope, settings))
+            for _ in range(request.workers)]
     try:
         return _run_search(search, generator, robot, request, scene, start, key_postures)
     finally:
-        if search.pool is not None:
-            search.pool.shutdown(cancel_futures=True)
+        for worker in search.pool:
+            worker.shutdown(cancel_futures=True)
 
 
 def _run_search(search, generator, robot, request, scene, start, key_postures):
@@ -421,8 +464,12 @@ def _statistics(search) -> dict:
                              "median_s": float(np.median(wall)),
                              "p99_s": float(np.percentile(wall, 99)),
                              "median_cpu_s": float(np.median([c for _, _, c in calls]))}
+    checks = search.transition_checks
     return {"nodes_expanded": search.expanded,
             "posture_generations": len(search.posture_calls),
+            "transitions_checked": len(checks),
+            "transitions_rejected": sum(not ok for ok, _ in checks),
+            "transition_check_time": float(sum(seconds for _, seconds in checks)),
             "planning_time": time.perf_counter() - search.start_time,
             "ordered_sons": search.request.ordered_sons,
             "posture_calls": by_kind}
