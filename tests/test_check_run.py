@@ -7,6 +7,7 @@ to the check functions, the check concerned fails (exit 1 naming it)."""
 
 import time
 
+import numpy as np
 import pytest
 from conftest import wait_until
 from contact_planner_node.conversions import stance_plan_msg
@@ -203,3 +204,13 @@ def test_altered_arrays_fail_the_check_concerned(report):
     late = [(run.stamps[2], False, "stance 2: made up")]
     assert "missing switch" in check_run.check_stabilizer(initial, late, times, enabled,
                                                           run.stamps[0]).failures[0]
+    # off and on again at once (a release, then a creation): no switch, published or not
+    blip = [(run.stamps[2], False, "stance 2: released"),
+            (run.stamps[2] + 0.02, True, "stance 3: created")]
+    assert check_run.check_stabilizer(initial, blip, times, enabled, run.stamps[0]).passed
+    middle = int(np.searchsorted(times, run.stamps[2]))
+    blipped = enabled.copy()
+    blipped[middle:middle + 2] = False
+    assert times[middle + 2] - times[middle] < check_run.STABILIZER_DELAY
+    assert check_run.check_stabilizer(initial, blip, times, blipped, run.stamps[0]).passed
+    assert not check_run.check_stabilizer(initial, [], times, flipped, run.stamps[0]).passed
