@@ -235,7 +235,8 @@ def run_plot(args) -> int:
                for name, colour in colours.items()]
     figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 8), fontsize=9,
                   title="contact spots (* / hatched: not in stability)", title_fontsize=9)
-    figure.suptitle(f"plan on scene {scene.name}: {len(plan.stances)} stances", fontsize=11)
+    figure.suptitle(f"plan on scene {scene.name}: {len(plan.stances)} stances", fontsize=11,
+                    y=1.0 - 0.1 / figure.get_figheight(), va="top")  # in the top margin
     figure.subplots_adjust(left=0.01, right=0.99, bottom=0.8 / figure.get_figheight(),
                            top=1.0 - 0.5 / figure.get_figheight(), wspace=0.05, hspace=0.1)
     figure.savefig(args.output, dpi=110)
