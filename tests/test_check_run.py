@@ -169,7 +169,9 @@ def test_altered_arrays_fail_the_check_concerned(report):
     # a joint too fast
     names, times, joints = run.joint_names, run.times, run.joints.copy()
     column = names.index(robot.limited_joint_names[0])
-    joints[len(times) // 2:, column] += 0.2   # a 0.2 rad step: 10 rad/s over the 20 ms window
+    # a step of twice what the limit allows over the measuring window
+    joints[len(times) // 2:, column] += 2.0 * robot.velocity_limit[0] * \
+        check_run.VELOCITY_WINDOW
     failed = check_run.check_joint_velocity(robot, names, times, joints)
     assert failed.failures and failed.failures[0].startswith(robot.limited_joint_names[0])
     # a velocity jump and a position jump in the commanded trajectory
