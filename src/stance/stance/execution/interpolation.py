@@ -58,8 +58,8 @@ DETOUR_LINE_TOLERANCE = 0.01
 FUNNEL_SLOPE = 3.0  # m of allowance per m along the path from where the spline ends
 TOUCH_DISTANCE = 0.01  # m along the path: a moving body may touch its contact's surface
 VIA_MIN_RISE = 0.01  # m: an end this far below the other's approach plane gets a via point
-PATH_WEIGHT = 1e-2
-SUBDIVISIONS = 3  # levels of halved steps through which a failing sample is approached  # of a moving spot's path error relative to a held contact's error
+PATH_WEIGHT = 1e-2  # of a moving spot's path error relative to a held contact's error
+SUBDIVISIONS = 3  # levels of halved steps through which a failing sample is approached
 
 
 class InterpolationError(RuntimeError):
@@ -116,11 +116,11 @@ class SpotPath:
         self.spline_length = float(knots[-1])
         # Hermite tangents: the unit normal where a line joins (C1), the chord direction at
         # a free end, central differences at a via point (no overshoot past the corners)
-        tangents = np.gradient(points, knots, axis=0, edge_order=1)
-        tangents[0] = leave_normal if leave_normal is not None else _unit(tangents[0])
-        tangents[-1] = -enter_normal if enter_normal is not None else _unit(tangents[-1])
-        if len(points) > 2:
-            tangents[1:-1] = (points[2:] - points[:-2]) / (knots[2:] - knots[:-2])[:, None]
+        tangents = np.empty_like(points)
+        tangents[0] = leave_normal if leave_normal is not None else _unit(points[1] - points[0])
+        tangents[-1] = -enter_normal if enter_normal is not None else \
+            _unit(points[-1] - points[-2])
+        tangents[1:-1] = (points[2:] - points[:-2]) / (knots[2:] - knots[:-2])[:, None]
         self.spline = CubicHermiteSpline(knots, points, tangents)
         self.leave_normal, self.enter_normal = leave_normal, enter_normal
         self.slerp = Slerp([0.0, 1.0], Rotation.from_matrix(
