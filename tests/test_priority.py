@@ -1,16 +1,18 @@
 """Strict priorities: a level is never disturbed by the levels below it.
 
 DampedHierarchy is checked on random (possibly rank-deficient) levels with fixed joints,
-and PIKSolver on Talos, where a conflicting lower level must leave the higher ones alone.
+and PIKSolver on Talos, where a conflicting lower level must leave the higher ones alone,
+also when the velocity limits force the step to slow down.
 """
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from helpers.problems import hierarchy_problems, residual
 from stance.hierarchy import DampedHierarchy, Level
-from stance.pik import PIKSolver, default_stack_specs
+from stance.pik import PIKSolver, _largest_fraction, default_stack_specs
 from stance.robot import Robot
 from stance.stack import TaskSpec
 
@@ -39,6 +41,36 @@ def test_fixed_joints_are_exactly_respected(problem):
     levels, nv, fixed_index, fixed_dq, _ = problem
     solution = DampedHierarchy(damping=DAMPING).solve(levels, nv, fixed_index, fixed_dq)
     assert np.array_equal(solution.dq[fixed_index], fixed_dq)
+
+
+@PROPERTY
+@given(hierarchy_problems())
+def test_level_steps_add_up_to_dq_and_leave_higher_levels_alone(problem):
+    """dq = fixed variations + each level's share; a level's share does not move the
+    levels above it (what lets the velocity limits drop lower levels first)."""
+    levels, nv, fixed_index, fixed_dq, _ = problem
+    solution = DampedHierarchy(damping=DAMPING).solve(levels, nv, fixed_index, fixed_dq)
+    fixed = np.zeros(nv)
+    fixed[fixed_index] = fixed_dq
+    np.testing.assert_allclose(fixed + solution.level_steps.sum(axis=0), solution.dq,
+                               atol=1e-12)
+    assert np.all(solution.level_steps[:, fixed_index] == 0.0)
+    for index, level_step in enumerate(solution.level_steps):
+        for higher in levels[:index]:
+            scale = 1.0 + np.linalg.norm(higher.jacobian) * np.linalg.norm(level_step)
+            assert np.linalg.norm(higher.jacobian @ level_step) < PRIORITY_TOLERANCE * scale
+
+
+@PROPERTY
+@given(st.lists(st.tuples(st.floats(-1.0, 1.0), st.floats(-1e3, 1e3)), min_size=1,
+                max_size=12))
+def test_largest_fraction_fits_the_limits_and_is_maximal(pairs):
+    used, added = (np.array(column) for column in zip(*pairs))
+    fraction = _largest_fraction(used, added)
+    assert 0.0 <= fraction <= 1.0
+    assert np.all(np.abs(used + fraction * added) <= 1.0 + 1e-12)
+    if fraction < 1.0:  # some joint is on its limit
+        assert np.max(np.abs(used + fraction * added)) > 1.0 - 1e-9
 
 
 @pytest.mark.parametrize("rows, nv", [(3, 8), (8, 8), (12, 5)], ids=["wide", "square", "tall"])
@@ -121,3 +153,30 @@ def test_conflicting_lower_level_leaves_higher_levels_unchanged_on_talos(talos, 
         assert value < 1e-4, f"level {priority} should be feasible"
         assert abs(together[priority] - value) < PRIORITY_TOLERANCE
 
+
+
+def test_velocity_limits_slow_the_lower_level_not_the_higher_ones(talos):
+    """With dt just long enough for the higher levels' step, a far posture below them is
+    what slows down: the higher levels' residuals stay those solved alone, every joint
+    stays under its velocity limit."""
+    q = talos.initial_configuration()
+    unlimited = PIKSolver(talos, strategy="none", damping=DAMPING)
+    unlimited.set_stack(feasible_specs(), q)
+    shift_pose(unlimited.task("right_hand"), [0.002, -0.002, 0.002])  # m: a slow step
+    alone = unlimited.step(q)
+    speed = np.abs(alone.dq[talos.limited_v_index]) / talos.velocity_limit
+    dt = 1.01 * float(np.max(speed))  # s: the higher levels' step just fits
+
+    spec, set_conflicting_target = CONFLICTING_LEVELS["far_posture"]
+    solver = PIKSolver(talos, strategy="none", damping=DAMPING, dt=dt)
+    solver.set_stack([*feasible_specs(), spec], q)
+    solver.task("right_hand").set_target(unlimited.task("right_hand").target)
+    set_conflicting_target(solver.task(spec.name), talos)
+    together = solver.step(q)
+
+    assert together.velocity_scale < 1.0, "the lower level should have to slow down"
+    assert np.all(np.abs(together.dq[talos.limited_v_index])
+                  <= talos.velocity_limit * dt * (1.0 + 1e-9))
+    residuals = {level.priority: level.step_residual_norm for level in together.levels}
+    for level in alone.levels:
+        assert abs(residuals[level.priority] - level.step_residual_norm) < PRIORITY_TOLERANCE

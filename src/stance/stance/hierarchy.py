@@ -37,6 +37,8 @@ class HierarchySolution:
     dq: np.ndarray                # joint variation (nv), rad or m
     step_residuals: np.ndarray    # |J dq - target| per level, task units
     binding: list = field(default_factory=list)  # binding bounds, e.g. "<joint> upper"
+    level_steps: np.ndarray | None = None  # levels x nv: each level's share of dq (the
+    #                                        fixed variations are the rest), if known
 
 
 class DampedHierarchy:
@@ -66,9 +68,9 @@ class DampedHierarchy:
         if len(fixed_index):
             free[fixed_index] = False
             start[fixed_index] = fixed_dq
-        dq, residuals = _solve_levels(jacobian, target, offsets, free, start,
-                                      self.damping, self.rank_tolerance)
-        return HierarchySolution(dq=dq, step_residuals=residuals)
+        dq, residuals, level_steps = _solve_levels(jacobian, target, offsets, free, start,
+                                                   self.damping, self.rank_tolerance)
+        return HierarchySolution(dq=dq, step_residuals=residuals, level_steps=level_steps)
 
 
 def stack_levels(levels, nv: int):
@@ -95,6 +97,7 @@ def _solve_levels(jacobian, target, offsets, free, start, damping, rank_toleranc
             column += 1
     level_count = len(offsets) - 1
     residuals = np.zeros(level_count)
+    level_steps = np.zeros((level_count, nv))
     damping_sq = damping * damping
     for level in range(level_count):
         rows = jacobian[offsets[level]:offsets[level + 1]]
@@ -102,12 +105,13 @@ def _solve_levels(jacobian, target, offsets, free, start, damping, rank_toleranc
         residual = wanted - rows @ dq
         if basis.shape[1] > 0 and rows.shape[0] > 0:
             projected = rows @ basis
-            dq += basis @ _damped_least_squares(projected, residual, damping_sq)
+            level_steps[level] = basis @ _damped_least_squares(projected, residual, damping_sq)
+            dq += level_steps[level]
             if level < level_count - 1:
                 basis = _nullspace_update(projected, basis, rank_tolerance)
             residual = wanted - rows @ dq
         residuals[level] = np.sqrt(residual @ residual)
-    return dq, residuals
+    return dq, residuals, level_steps
 
 
 @numba.njit(cache=True)

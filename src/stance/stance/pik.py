@@ -7,8 +7,13 @@ One IK step from configuration q:
   3. clamping loop: solve the hierarchy; ask every limit model, through the strategy, which
      of its free DoFs must be damped or clamped; fix them as highest-priority equalities;
      repeat until none is new (the strategy may add lowest-priority levels, e.g. GPM);
-  4. optionally scale dq uniformly so no joint exceeds its velocity limit over dt
-     (scaling toward q keeps every joint inside its limits);
+  4. optionally keep every joint under its velocity limit over dt, saturating the lowest
+     levels first: levels are kept whole from the highest down while the sum stays within
+     the limits, the first that would exceed them is scaled to fit and the ones below it
+     are dropped, so a lower level never slows a higher one (each level's share lies in the
+     nullspace of the ones above it); without per-level shares (QP hierarchy: velocity
+     bounds are its inequalities), or when the fixed variations alone exceed the limits, dq
+     is scaled uniformly;
   5. q_next = integrate(q, dq) on the configuration manifold.
 """
 
@@ -45,7 +50,8 @@ class StepResult:
     clamped: np.ndarray         # bool per limited DoF: variation fixed in the loop
     clamping_iterations: int    # hierarchy solutions evaluated
     solve_time: float           # s
-    velocity_scale: float = 1.0  # uniform dq scaling applied for velocity limits
+    velocity_scale: float = 1.0  # velocity limits: factor on the first level that had to
+    #                              slow down, the levels below it dropped (uniform: on dq)
     binding_constraints: list = field(default_factory=list)  # bounds on dq that bind
 
 
@@ -174,15 +180,14 @@ class PIKSolver:
             if not changed:
                 break
 
-        dq = solution.dq
-        scale = self._velocity_scale(dq)
-        if scale < 1.0:
-            dq = dq * scale
+        dq, scale = self._within_velocity_limits(solution, fixed_dq)
+        step_residuals = solution.step_residuals if scale == 1.0 else \
+            _level_residuals(jacobian, target, offsets, dq)
         q_next = pin.integrate(robot.model, q, dq)
         if self.strategy.enforces_limits:
             for model in self.limit_models:
                 model.keep_inside(q, q_next)
-        levels, task_errors = self._reports(q, error, solution.step_residuals)
+        levels, task_errors = self._reports(q, error, step_residuals)
         return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors,
                           damping=h[self._dof_v_index], clamped=fixed[self._dof_v_index],
                           clamping_iterations=iterations,
@@ -270,12 +275,44 @@ class PIKSolver:
             upper[v_index[usable]] = np.minimum(upper[v_index[usable]], speed[usable])
         return lower, upper
 
-    def _velocity_scale(self, dq: np.ndarray) -> float:
-        """Uniform factor (<= 1) keeping every 1-DoF joint under its velocity limit over dt."""
+    def _within_velocity_limits(self, solution, fixed_dq: np.ndarray) -> tuple:
+        """(dq, factor): the solution under the 1-DoF joints' velocity limits over dt, lowest
+        levels saturated first (module docstring, step 4); factor 1.0 when nothing is."""
         if self._speed_index is None:
-            return 1.0
-        worst = float(np.max(np.abs(dq[self._speed_index]) * self._inverse_speed_step))
-        return 1.0 / worst if worst > 1.0 else 1.0
+            return solution.dq, 1.0
+        speeds = self._inverse_speed_step
+
+        def usage(dq):  # per limited joint: |variation| / allowed variation
+            return dq[self._speed_index] * speeds
+
+        if np.max(np.abs(usage(solution.dq))) <= 1.0:
+            return solution.dq, 1.0
+        if solution.level_steps is None or np.max(np.abs(usage(fixed_dq))) > 1.0:
+            scale = 1.0 / float(np.max(np.abs(usage(solution.dq))))
+            return solution.dq * scale, scale
+        dq = fixed_dq.copy()
+        for level_step in solution.level_steps:
+            fraction = _largest_fraction(usage(dq), usage(level_step))
+            if fraction < 1.0:
+                return dq + fraction * level_step, fraction
+            dq += level_step
+        return dq, 1.0
+
+
+def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
+    """Largest s in [0, 1] with |used + s added| <= 1 everywhere, given |used| <= 1."""
+    room = np.where(added > 0.0, 1.0 - used, 1.0 + used)
+    binding = np.abs(added) > room
+    if not np.any(binding):
+        return 1.0
+    return float(np.min(room[binding] / np.abs(added[binding])))
+
+
+def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
+    """|J dq - target| of each stacked level (task units)."""
+    residual = target - jacobian @ dq
+    return np.array([np.linalg.norm(residual[offsets[i]:offsets[i + 1]])
+                     for i in range(len(offsets) - 1)])
 
 
 HIERARCHIES = ("svd", "qp")
