@@ -7,14 +7,12 @@ naming the offending field; nothing here touches a node. Frames: world, m, rad.
 from __future__ import annotations
 
 import numpy as np
-import pinocchio as pin
 from contact_planner_node.conversions import contact_from_msg
 from pik_node.conversions import configuration_from_msg, msg_from_spec
 from pik_node.node import fill_pose_msg
 from sensor_msgs.msg import JointState
 from stance.planning.contacts import Plan, Stance
 from stance.planning.scene import SceneError, load_scene
-from stance.stack import TaskSpec
 from stance.tasks import TargetError
 from stance_msgs.srv import SetConfiguration, SetStack
 
@@ -65,26 +63,6 @@ def configuration_request(robot, q: np.ndarray) -> SetConfiguration.Request:
     joints = robot.actuated_positions(q)
     request.joints = JointState(name=list(joints), position=list(joints.values()))
     return request
-
-
-def held_frame_target(scene, contact) -> pin.SE3:
-    """World pose of the robot frame carrying contact's spot when the contact is exact:
-    spot target * placement^-1."""
-    spot = scene.spots[contact.spot]
-    return contact.spot_target(scene.surfaces[contact.surface]) * spot.placement.inverse()
-
-
-def execution_stack(scene, held, moving, gains) -> list:
-    """TaskSpecs for one transition: held contacts as pose tasks on their spots' robot
-    frames at priority 0, moving spots as pose tasks at priority 1 with the CoM (x, y),
-    posture at priority 2. gains: {'contact', 'com', 'posture'}; task names: spot names."""
-    specs = [TaskSpec(name=c.spot, kind="pose", frame=scene.spots[c.spot].frame, priority=0,
-                      gain=gains["contact"]) for c in held]
-    specs += [TaskSpec(name=spot, kind="pose", frame=scene.spots[spot].frame, priority=1,
-                       gain=gains["contact"]) for spot in moving]
-    specs += [TaskSpec(name="com", kind="com", priority=1, axes=("x", "y"), gain=gains["com"]),
-              TaskSpec(name="posture", kind="posture", priority=2, gain=gains["posture"])]
-    return specs
 
 
 def stack_request(specs) -> SetStack.Request:

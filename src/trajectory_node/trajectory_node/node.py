@@ -81,14 +81,14 @@ from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import InterpolationError, TransitionPlanner
 from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
+from stance.execution.tracking import GAINS, task_targets, transition_tasks
 from stance.planning.collision import CollisionModel
 from stance_msgs.msg import ContactStance, SolverStatus, StancePlan
 from stance_msgs.srv import SetConfiguration, SetStack
 from std_msgs.msg import Header, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from .conversions import (configuration_request, execution_stack, held_frame_target,
-                          plan_from_msg, stack_request)
+from .conversions import configuration_request, plan_from_msg, stack_request
 
 PLAN_TOPIC = "/contact_planner/plan"
 TRAJECTORY_TOPIC = "/trajectory/joint_trajectory"
@@ -240,7 +240,7 @@ class TrajectoryNode(Node):
             "joint acceleration limit of the time_optimal timing (rad/s^2)", 0.01, 1000.0))
         self.declare_parameter("rate", 100.0, float_parameter(
             "task targets streamed to pik_node per second (Hz)", 1.0, 1000.0))
-        for name, default in (("contact", 0.5), ("com", 0.5), ("posture", 0.3)):
+        for name, default in GAINS.items():
             self.declare_parameter(f"{name}_gain", default, float_parameter(
                 f"IK gain of the {name} task(s): fraction of the error corrected per step",
                 1e-3, 1.0))
@@ -428,32 +428,24 @@ class TrajectoryNode(Node):
     def _transition(self, scene, planner, plan, transition):
         """(stack, held contacts' frame targets by spot) of transition `transition` (stance
         i -> i + 1)."""
-        first, second = plan.stances[transition], plan.stances[transition + 1]
-        moving = planner.moving_paths(first, second)
-        held = [contact for contact in first.contacts if contact.spot not in moving]
-        specs = execution_stack(scene, held, sorted(moving), self.gains)
-        return specs, {contact.spot: held_frame_target(scene, contact) for contact in held}
+        return transition_tasks(scene, planner, plan, transition, self.gains)
 
     def _stream(self, q, stack, held):
-        """Publish every task's target at configuration q (nq): held contacts their exact
-        frame target, other frames, the CoM and the joints their values at q (world)."""
-        model, data = self.robot.model, self._fk_data
-        pin.framesForwardKinematics(model, data, q)
-        com = pin.centerOfMass(model, data, q, False)
+        """Publish every task's target at configuration q (nq) (tracking.task_targets)."""
+        targets = task_targets(self.robot.model, self._fk_data, stack, held, q)
         header = Header(stamp=self.get_clock().now().to_msg(), frame_id="world")
         for spec in stack:
+            value = targets[spec.name]
             if spec.kind == "posture":
                 target = JointState(header=header, name=self._joints,
-                                    position=q[self._joint_q_index].tolist())
+                                    position=value[self._joint_q_index].tolist())
             elif spec.kind == "com":
                 target = PointStamped(header=header)
-                target.point.x, target.point.y, target.point.z = (float(v) for v in com)
+                target.point.x, target.point.y, target.point.z = (float(v) for v in value)
             else:
-                pose = held[spec.name] if spec.name in held else \
-                    data.oMf[model.getFrameId(spec.frame)]
                 target = PoseStamped(header=header)
-                fill_pose_msg(target.pose, pose.translation,
-                              pin.Quaternion(pose.rotation).coeffs())
+                fill_pose_msg(target.pose, value.translation,
+                              pin.Quaternion(value.rotation).coeffs())
             self._target_publisher(spec).publish(target)
 
     def _target_publisher(self, spec):
