@@ -2,6 +2,7 @@
 its max_restarts, SIGINT stops everything; malformed graph files are refused naming the
 field; the launch file names the default graph's nodes and parameter files."""
 
+import json
 import os
 import re
 import signal
@@ -162,7 +163,8 @@ def test_cli_refuses_a_bad_graph_with_the_field(processes, tmp_path):
 
 def test_launch_file_runs_the_default_graph(monkeypatch):
     """The launch file, run against stand-ins for launch and launch_ros (not installable
-    here), declares the default graph's installed nodes with their parameter files."""
+    here), declares the default graph's installed nodes with their parameter files, the
+    graph's parameter overrides and restart policies: what `stance graph` runs."""
     nodes = []
     launch = types.ModuleType("launch")
     launch.LaunchDescription = list
@@ -184,10 +186,14 @@ def test_launch_file_runs_the_default_graph(monkeypatch):
             assert spec.optional, spec.name
     assert [(node["package"], node["executable"]) for node in nodes] == [
         tuple(argv[0].split("/")[-2:]) for argv in installed]
-    assert [node["parameters"] for node in nodes] == [
-        [argv[argv.index("--params-file") + 1]] for argv in installed]
+    for node, argv in zip(nodes, installed):
+        params_file, *overrides = node["parameters"]
+        after_file = argv.index("--params-file") + 1
+        assert params_file == argv[after_file]
+        assert [f"{key}:={json.dumps(value)}" for override in overrides
+                for key, value in override.items()] == argv[after_file + 2::2]
+    assert any(len(node["parameters"]) > 1 for node in nodes)  # the graph overrides some
     assert all(node["respawn"] for node in nodes)
-    assert {node["respawn_max_retries"] for node in nodes} == {
-        spec.max_restarts for spec in graph}
-    assert {(spec.package or spec.executable, spec.executable, spec.optional)
-            for spec in graph} == set(namespace["NODES"])
+    by_name = {spec.name: spec for spec in graph}
+    assert [(node["respawn_max_retries"], node["respawn_delay"]) for node in nodes] == [
+        (by_name[node["name"]].max_restarts, by_name[node["name"]].backoff) for node in nodes]
