@@ -202,6 +202,7 @@ def test_flat_steps_plan_is_executed_through_pik_node(graph, flat_steps_plan):
     ("unknown surface", ["stances[1].contacts[0].surface", "no_such_surface"]),
     ("unknown scene", ["scene", "no_such_scene"]),
     ("missing joint", ["stances[0].witness_joints", "missing"]),
+    ("witness off its contacts", ["fails verification", "stance 1:", "mm from its target"]),
 ])
 def test_bad_plan_fails_with_its_reason_and_the_node_lives_on(graph, flat_steps_plan, case,
                                                               words):
@@ -214,6 +215,8 @@ def test_bad_plan_fails_with_its_reason_and_the_node_lives_on(graph, flat_steps_
         msg.stances[1].contacts[0].surface = "no_such_surface"
     elif case == "unknown scene":
         msg.scene = "no_such_scene"
+    elif case == "witness off its contacts":
+        msg.stances[1].witness_base_pose.position.x += 0.05   # m: every spot moves with it
     else:
         msg.stances[0].witness_joints.name.pop()
         msg.stances[0].witness_joints.position.pop()

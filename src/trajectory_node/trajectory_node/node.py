@@ -33,9 +33,11 @@ and the node waits for the next one.
 A new plan while one executes: the current transition is finished (the robot is then at
 rest on a witness: every stance boundary is a contact event), then the new plan starts
 from its own first witness (a jump if it does not start there). A plan arriving while
-another is interpolated replaces it. A plan that cannot be converted, interpolated or
-executed is reported (status `failed`, log) and the node waits for the next one; pik_node
-then holds its last targets. A plan stamped before the node started (the latched last
+another is interpolated replaces it. Every plan is verified first (stance.planning.verify,
+what `stance check-plan` runs: contacts, collisions, joint limits, static equilibrium, one
+contact change per stance); one that fails is rejected with its first failures. A plan that
+cannot be converted, verified, interpolated or executed is reported (status `failed`, log)
+and the node waits for the next one; pik_node then holds its last targets. A plan stamped before the node started (the latched last
 plan, found at start-up) is not executed unless `execute_latched_plan` is true: a node
 restarted by `stance graph` must not replay the last plan from its first witness; the
 status says so. A plan equal to the last one received (header stamp included) is ignored.
@@ -83,12 +85,13 @@ from stance.execution.interpolation import InterpolationError, TransitionPlanner
 from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
 from stance.execution.tracking import GAINS, task_targets, transition_tasks
 from stance.planning.collision import CollisionModel
+from stance.planning.verify import verify_plan
 from stance_msgs.msg import ContactStance, SolverStatus, StancePlan
 from stance_msgs.srv import SetConfiguration, SetStack
 from std_msgs.msg import Header, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from .conversions import configuration_request, plan_from_msg, stack_request
+from .conversions import PlanRejected, configuration_request, plan_from_msg, stack_request
 
 PLAN_TOPIC = "/contact_planner/plan"
 TRAJECTORY_TOPIC = "/trajectory/joint_trajectory"
@@ -316,6 +319,7 @@ class TrajectoryNode(Node):
                                       f"{msg.scene!r}, n = {self.steps}")
         try:
             plan, scene = plan_from_msg(msg, self.robot, self.robot_spec)
+            _require_verified(plan, scene, self.robot)
             planner = TransitionPlanner(self.robot, scene, CollisionModel(self.robot, scene),
                                         steps=self.steps)
             path = planner.interpolate(plan)
@@ -511,6 +515,14 @@ class TrajectoryNode(Node):
             self.get_logger().error(text)
         else:
             self.get_logger().info(text)
+
+
+def _require_verified(plan, scene, robot, shown: int = 3) -> None:
+    """PlanRejected naming the first `shown` failures of the plan's verification, if any."""
+    failures = verify_plan(plan, scene, robot).failures
+    if failures:
+        more = f" (and {len(failures) - shown} more)" if len(failures) > shown else ""
+        raise PlanRejected(f"fails verification: {'; '.join(failures[:shown])}{more}")
 
 
 def main(args=None):
