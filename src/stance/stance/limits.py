@@ -98,10 +98,13 @@ class RevoluteLimits:
         self.thickness = thickness
 
     @classmethod
-    def from_robot(cls, robot, activation: float = 0.2) -> RevoluteLimits:
-        """Every limited 1-DoF joint of the robot (the floating base never)."""
-        return cls(robot.limited_joint_names, robot.limited_q_index, robot.limited_v_index,
-                   robot.lower, robot.upper, activation)
+    def from_robot(cls, robot, activation: float = 0.2, owned_v=()) -> RevoluteLimits:
+        """Every limited 1-DoF joint of the robot (the floating base never) but those whose
+        velocity DoF is in `owned_v` (limited by another model, e.g. a joint group)."""
+        keep = ~np.isin(robot.limited_v_index, np.asarray(list(owned_v), dtype=int))
+        return cls(np.asarray(robot.limited_joint_names)[keep].tolist(),
+                   robot.limited_q_index[keep], robot.limited_v_index[keep],
+                   robot.lower[keep], robot.upper[keep], activation)
 
     def keep_inside(self, q, q_next) -> None:
         """Project q_next (in place) into the limits without ever moving a joint further

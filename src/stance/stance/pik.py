@@ -77,8 +77,9 @@ class PIKSolver:
         "qp" (QPHierarchy on ProxSuite, with joint and velocity bounds as inequalities), or
         an object with solve_stacked(); one whose `uses_bounds` is true also receives
         per-DoF bounds on dq.
-    limit_models: limit models beyond the robot's 1-DoF joints (e.g. swing joints); their
-        DoFs must not overlap.
+    limit_models: limit models beyond the robot's 1-DoF joints (e.g. swing joints, joint
+        groups, which take their joints from the revolute model); their DoFs must not
+        overlap.
     """
 
     def __init__(self, robot, strategy: str = "progressive", damping: float = 1e-3,
@@ -87,7 +88,8 @@ class PIKSolver:
         self.robot = robot
         self.strategy = make_strategy(strategy)
         self.hierarchy = make_hierarchy(hierarchy, robot, damping, dt)
-        self.limits = RevoluteLimits.from_robot(robot, activation)
+        self.limits = RevoluteLimits.from_robot(
+            robot, activation, {int(v) for model in limit_models for v in model.v_index})
         self.limit_models = [self.limits, *limit_models]
         self.limited_dof_names = [name for model in self.limit_models
                                   for name in model.dof_names]
@@ -264,12 +266,13 @@ class PIKSolver:
         outside them to move further out, and velocity limits over dt; +-inf elsewhere."""
         nv = self.robot.model.nv
         lower, upper = np.full(nv, -np.inf), np.full(nv, np.inf)
-        current = q[self.limits.q_index]
-        v_index = self.limits.v_index
-        lower[v_index] = np.minimum(self.limits.lower - current, 0.0)
-        upper[v_index] = np.maximum(self.limits.upper - current, 0.0)
+        robot = self.robot
+        current = q[robot.limited_q_index]
+        v_index = robot.limited_v_index
+        lower[v_index] = np.minimum(robot.lower - current, 0.0)
+        upper[v_index] = np.maximum(robot.upper - current, 0.0)
         if self.dt is not None:
-            speed = self.robot.velocity_limit * self.dt
+            speed = robot.velocity_limit * self.dt
             usable = speed > 0
             lower[v_index[usable]] = np.maximum(lower[v_index[usable]], -speed[usable])
             upper[v_index[usable]] = np.minimum(upper[v_index[usable]], speed[usable])

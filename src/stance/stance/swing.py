@@ -22,7 +22,10 @@ Second stage: a state outside the domain is clamped onto the closest boundary po
 joint slides along the limit (Fig. 6). The twist follows the revolute rule (eq. 1-5).
 
 The limit models fix all three velocity DoFs of a Pinocchio spherical joint (local angular
-velocity, rad) to log3(R_k^T R'_{k+1}) whenever the swing or the twist is altered.
+velocity, rad) to log3(R_k^T R'_{k+1}) whenever the swing or the twist is altered. The same
+rule applies to a chain of 2-3 revolute joints treated as one joint (JointGroupLimit, e.g.
+Talos' hips): its rotation is the product of the joints', and an altered rotation is turned
+back into joint angles.
 """
 
 from __future__ import annotations
@@ -280,26 +283,77 @@ def damp_swing(domain: SwingDomain, thickness: float, s, s_next, progressive: bo
     return damped, h
 
 
-# Limit models of Pinocchio spherical joints.
+# Limit models: the swing / twist rule, on Pinocchio spherical joints and on groups of
+# revolute joints.
 
-class BallLimit:
-    """Ball-and-socket limit (IV.B.3) of one Pinocchio spherical joint (q: quaternion x, y,
-    z, w; dq: local angular velocity, rad): swing domain plus twist interval [min, max]
-    (rad, revolute rule eq. 1-5), or a free twist (None).
+class SwingTwistRule:
+    """What a ball-and-socket limit does to a joint rotation (IV.B.3): swing domain plus
+    twist interval [min, max] (rad, revolute rule eq. 1-5), or a free twist (None).
 
     activation: damping thickness q_hat (rad) of the swing zone and of the twist zones
     (the latter capped like revolute joints)."""
 
-    def __init__(self, joint: str, q_index: int, v_index: int, domain: SwingDomain,
-                 twist=None, activation: float = 0.2):
-        self.joint = joint
+    def __init__(self, name: str, domain: SwingDomain, twist=None, activation: float = 0.2):
         self.domain = domain
         self.thickness = float(activation)
+        self.twist = None if twist is None else RevoluteLimits(
+            [f"{name}_twist"], [0], [0], [twist[0]], [twist[1]], activation)
+
+    def altered(self, rotation, rotation_next, progressive: bool) -> tuple:
+        """(altered next rotation or None when the move is left alone, swing h, twist h)
+        for a move of the joint rotation from `rotation` to `rotation_next`."""
+        s, theta = swing_twist(rotation)
+        s_next, theta_next = swing_twist(rotation_next)
+        swing_target, swing_h = damp_swing(self.domain, self.thickness, s, s_next,
+                                           progressive)
+        twist_target, twist_h = self._twist_target(theta, theta_next, progressive)
+        if swing_target is None and twist_target is None:
+            return None, 0.0, 0.0
+        target = rotation_from_swing_twist(
+            s_next if swing_target is None else swing_target,
+            theta_next if twist_target is None else twist_target)
+        return target, swing_h, twist_h
+
+    def _twist_target(self, theta, theta_next, progressive):
+        """Altered next twist (rad) and h by the revolute rule, or (None, 0)."""
+        if self.twist is None:
+            return None, 0.0
+        variation = (theta_next - theta + math.pi) % (2.0 * math.pi) - math.pi
+        decision = self.twist.decide(np.array([theta]), np.array([variation]),
+                                     np.ones(1, dtype=bool), progressive)
+        if not len(decision.index):
+            return None, 0.0
+        return theta + decision.dq[0], float(decision.h[0])
+
+    def projected(self, rotation, rotation_next):
+        """rotation_next projected into the limits without moving further out than
+        `rotation`, or None when it needs no projection."""
+        s, theta = swing_twist(rotation)
+        s_next, theta_next = swing_twist(rotation_next)
+        changed = False
+        allowed = min(0.0, self.domain.signed_distance(s))
+        if self.domain.signed_distance(s_next) < allowed:
+            s_next, changed = self.domain.closest_boundary_point(s_next), True
+        if self.twist is not None:
+            current, following = np.array([theta]), np.array([theta_next])
+            self.twist.keep_inside(current, following)
+            changed = changed or following[0] != theta_next
+            theta_next = following[0]
+        return rotation_from_swing_twist(s_next, theta_next) if changed else None
+
+
+class BallLimit(SwingTwistRule):
+    """Ball-and-socket limit (IV.B.3) of one Pinocchio spherical joint (q: quaternion x, y,
+    z, w; dq: local angular velocity, rad); see SwingTwistRule. Fixes all three velocity
+    DoFs to log3(R_k^T R'_{k+1}) whenever the swing or the twist is altered."""
+
+    def __init__(self, joint: str, q_index: int, v_index: int, domain: SwingDomain,
+                 twist=None, activation: float = 0.2):
+        super().__init__(joint, domain, twist, activation)
+        self.joint = joint
         self.q_slice = slice(q_index, q_index + 4)
         self.v_index = np.arange(v_index, v_index + 3)
         self.dof_names = [f"{joint}_swing_x", f"{joint}_swing_y", f"{joint}_twist"]
-        self.twist = None if twist is None else RevoluteLimits(
-            [f"{joint}_twist"], [0], [0], [twist[0]], [twist[1]], activation)
 
     @classmethod
     def for_joint(cls, robot, joint: str, *args, **kwargs):
@@ -320,47 +374,19 @@ class BallLimit:
                 or np.linalg.norm(velocity) <= NEGLIGIBLE_VARIATION):
             return _nothing()
         rotation = self.rotation(q)
-        s, theta = swing_twist(rotation)
-        s_next, theta_next = swing_twist(rotation @ pin.exp3(velocity))
-        swing_target, swing_h = damp_swing(self.domain, self.thickness, s, s_next,
-                                           progressive)
-        twist_target, twist_h = self._twist_target(theta, theta_next, progressive)
-        if swing_target is None and twist_target is None:
+        target, swing_h, twist_h = self.altered(rotation, rotation @ pin.exp3(velocity),
+                                                progressive)
+        if target is None:
             return _nothing()
-        target = rotation_from_swing_twist(
-            s_next if swing_target is None else swing_target,
-            theta_next if twist_target is None else twist_target)
         fixed = pin.log3(rotation.T @ target)
         return LimitDecision(self.v_index.copy(), fixed,
                              np.array([swing_h, swing_h, twist_h]))
 
-    def _twist_target(self, theta, theta_next, progressive):
-        """Altered next twist (rad) and h by the revolute rule, or (None, 0)."""
-        if self.twist is None:
-            return None, 0.0
-        variation = (theta_next - theta + math.pi) % (2.0 * math.pi) - math.pi
-        decision = self.twist.decide(np.array([theta]), np.array([variation]),
-                                     np.ones(1, dtype=bool), progressive)
-        if not len(decision.index):
-            return None, 0.0
-        return theta + decision.dq[0], float(decision.h[0])
-
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's joint rotation (in place) into the limits without moving it
         further out than q: removes the negligible overshoot the decisions ignored."""
-        s, theta = swing_twist(self.rotation(q))
-        s_next, theta_next = swing_twist(self.rotation(q_next))
-        changed = False
-        allowed = min(0.0, self.domain.signed_distance(s))
-        if self.domain.signed_distance(s_next) < allowed:
-            s_next, changed = self.domain.closest_boundary_point(s_next), True
-        if self.twist is not None:
-            current, following = np.array([theta]), np.array([theta_next])
-            self.twist.keep_inside(current, following)
-            changed = changed or following[0] != theta_next
-            theta_next = following[0]
-        if changed:
-            rotation = rotation_from_swing_twist(s_next, theta_next)
+        rotation = self.projected(self.rotation(q), self.rotation(q_next))
+        if rotation is not None:
             q_next[self.q_slice] = pin.Quaternion(rotation).coeffs()
 
 
@@ -372,6 +398,176 @@ class SwingLimit(BallLimit):
                  twist_locked: bool = True, activation: float = 0.2):
         super().__init__(joint, q_index, v_index, domain,
                          (0.0, 0.0) if twist_locked else None, activation)
+
+
+REVOLUTE_AXES = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2}
+GROUP_SOLVE_ITERATIONS = 20
+GROUP_SOLVE_TOLERANCE = 1e-12  # rad: rotation error of the angles found for a rotation
+KEEP_INSIDE_ROUNDS = 3         # alternate projections onto the cone and the joints' bounds
+
+
+@numba.njit(cache=True)
+def _group_rotation(placements, axis_index, angles):
+    """(R, (3, n) axes in the group frame) of R = prod_k placement_k Rot(axis_k, angle_k)."""
+    rotation = np.eye(3)
+    axes = np.zeros((3, len(angles)))
+    for k in range(len(angles)):
+        rotation = rotation @ placements[k]
+        axis = axis_index[k]
+        axes[:, k] = rotation[:, axis]
+        cosine, sine = math.cos(angles[k]), math.sin(angles[k])
+        turn = np.eye(3)
+        first, second = (axis + 1) % 3, (axis + 2) % 3
+        turn[first, first], turn[first, second] = cosine, -sine
+        turn[second, first], turn[second, second] = sine, cosine
+        rotation = rotation @ turn
+    return rotation, axes
+
+
+class JointGroupLimit(SwingTwistRule):
+    """A chain of 2-3 revolute joints limited as one swing or ball-and-socket joint (e.g.
+    Talos' hip: yaw, roll, pitch). The group rotation R is the product of the joints'
+    rotations and of the placement rotations between them: the last joint's frame relative
+    to the first joint's placement, at zero angles the identity. Swing and twist are taken
+    about that frame's z as for spherical joints (only orientations count: axes that do not
+    meet, like Talos' shoulder, are treated as if they did).
+
+    The group owns its joints' velocity DoFs in place of the robot's revolute model, so it
+    also keeps their own bounds (revolute rule, eq. 1-5, after the swing / twist rule). When
+    the swing or twist is altered, the altered rotation is turned back into the angles of
+    the joints still free in the clamping loop by Gauss-Newton from q (exact for three
+    independent axes; the closest rotation they reach otherwise) and those joints are
+    fixed; otherwise only the joints their bounds alter are. h per joint: the larger of the
+    group's and the joint's own."""
+
+    def __init__(self, name: str, robot, joints, domain: SwingDomain, twist=None,
+                 activation: float = 0.2):
+        super().__init__(name, domain, twist, activation)
+        model = robot.model
+        ids = [robot.joint_id(joint) for joint in joints]
+        if not 2 <= len(ids) <= 3 or len(set(ids)) != len(ids):
+            raise ValueError("a joint group needs 2 or 3 distinct joints")
+        for joint, parent, child in zip(joints[1:], ids, ids[1:]):
+            if model.parents[child] != parent:
+                raise ValueError(f"joint {joint!r} is not a child of the joint before it")
+        axes = []
+        for joint, joint_id in zip(joints, ids):
+            kind = model.joints[joint_id].shortname()
+            if kind not in REVOLUTE_AXES:
+                raise ValueError(f"joint {joint!r} is not a revolute joint about x, y or z "
+                                 f"({kind})")
+            axes.append(REVOLUTE_AXES[kind])
+        self.name = name
+        self.axis_index = np.array(axes, dtype=np.int64)  # 0, 1, 2: x, y, z
+        self.placements = np.array([np.eye(3)] + [model.jointPlacements[i].rotation
+                                                  for i in ids[1:]])
+        self.q_index = np.array([model.joints[i].idx_q for i in ids])
+        self.v_index = np.array([model.joints[i].idx_v for i in ids])
+        self.dof_names = list(joints)
+        bounds = (model.lowerPositionLimit[self.q_index], model.upperPositionLimit[self.q_index])
+        local = np.arange(len(ids))
+        self.bounds = RevoluteLimits(joints, local, local, *bounds, activation)
+        self._state_key, self._state = None, None
+
+    def rotation(self, q) -> np.ndarray:
+        """Group rotation R at configuration q (nq)."""
+        return self.rotation_and_axes(q[self.q_index])[0]
+
+    def rotation_and_axes(self, angles) -> tuple:
+        """(group rotation R, (3, n) joint axes in the group frame) at joint angles (rad)."""
+        return _group_rotation(self.placements, self.axis_index,
+                               np.asarray(angles, dtype=float))
+
+    def _may_reach(self, angles, variation, zone: float) -> bool:
+        """Whether a move by `variation` (rad per joint) from `angles` may bring the swing
+        within `zone` (rad) of its domain's boundary or the twist within its damping zone
+        (zone > 0) or bound (zone = 0). False is certain: the rotation turns by at most
+        r = sum |variation|, the bone direction too, the swing vector by at most
+        r g with g = a / sin a at the largest swing angle a reachable, the twist by at most
+        r (1 + g). The state at `angles` is cached (the clamping loop asks again)."""
+        key = angles.tobytes()
+        if self._state_key != key:
+            s, theta = swing_twist(self.rotation_and_axes(angles)[0])
+            self._state_key = key
+            self._state = (s, theta, self.domain.signed_distance(s))
+        s, theta, distance = self._state
+        reach = float(np.sum(np.abs(variation)))
+        widest = float(np.hypot(s[0], s[1])) + reach
+        if widest >= 0.9 * math.pi:
+            return True
+        stretch = widest / math.sin(widest) if widest > 1e-9 else 1.0
+        if distance - reach * stretch <= zone:
+            return True
+        if self.twist is None:
+            return False
+        twist = self.twist
+        low, high = (twist.lower_threshold[0], twist.upper_threshold[0]) if zone > 0.0 else \
+            (twist.lower[0], twist.upper[0])
+        return min(theta - low, high - theta) - reach * (1.0 + stretch) <= 0.0
+
+    def angles_for(self, target, start, movable=None) -> np.ndarray:
+        """Joint angles (rad) whose group rotation is `target` (or closest to it), by
+        Gauss-Newton on log3(target R^T) from `start` moving only the `movable` joints
+        (bool, default all), each within pi of its start (the branch of the rotation
+        closest to the start)."""
+        start = np.asarray(start, dtype=float)
+        movable = np.ones(len(start), dtype=bool) if movable is None else movable
+        angles = start.copy()
+        for _ in range(GROUP_SOLVE_ITERATIONS):
+            rotation, axes = self.rotation_and_axes(angles)
+            error = pin.log3(target @ rotation.T)  # group frame
+            if np.linalg.norm(error) <= GROUP_SOLVE_TOLERANCE:
+                break
+            angles[movable] += np.linalg.lstsq(axes[:, movable], error, rcond=1e-9)[0]
+        return start + np.remainder(angles - start + np.pi, 2.0 * np.pi) - np.pi
+
+    def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
+        """q: configuration (nq), dq: candidate variation (nv), free: bool (nv). Joints
+        fixed earlier in the clamping loop keep their variation; the others are fixed
+        where the swing / twist rule or their own bounds alter them."""
+        angles, variation = q[self.q_index], dq[self.v_index].copy()
+        movable = free[self.v_index]
+        if not np.any(movable) or np.linalg.norm(variation[movable]) <= NEGLIGIBLE_VARIATION:
+            return _nothing()
+        h, altered = np.zeros(len(angles)), np.zeros(len(angles), dtype=bool)
+        target = None
+        if self._may_reach(angles, variation, self.thickness):
+            target, swing_h, twist_h = self.altered(
+                self.rotation_and_axes(angles)[0],
+                self.rotation_and_axes(angles + variation)[0], progressive)
+        if target is not None:
+            reached = self.angles_for(target, angles, movable)
+            variation[movable] = reached[movable] - angles[movable]
+            h[movable], altered[movable] = max(swing_h, twist_h), True
+        following = angles + variation
+        if np.any(following > self.bounds.upper_threshold) or \
+                np.any(following < self.bounds.lower_threshold):
+            own = self.bounds.decide(angles, variation, movable, progressive)
+            variation[own.index] = own.dq
+            h[own.index] = np.maximum(h[own.index], own.h)
+            altered[own.index] = True
+        fixed = np.flatnonzero(altered)
+        if not len(fixed):
+            return _nothing()
+        return LimitDecision(self.v_index[fixed], variation[fixed], h[fixed])
+
+    def keep_inside(self, q, q_next) -> None:
+        """Project q_next's group rotation, then its joints (in place), into the limits
+        without moving either further out than q (alternately, a few rounds: the bounds
+        have the last word)."""
+        angles, following = q[self.q_index], q_next[self.q_index].copy()
+        self.bounds.keep_inside(angles, following)
+        if not self._may_reach(angles, following - angles, 0.0):
+            q_next[self.q_index] = following
+            return
+        start = self.rotation_and_axes(angles)[0]
+        for _ in range(KEEP_INSIDE_ROUNDS):
+            rotation = self.projected(start, self.rotation_and_axes(following)[0])
+            if rotation is None:
+                break
+            following = self.angles_for(rotation, following)
+            self.bounds.keep_inside(angles, following)
+        q_next[self.q_index] = following
 
 
 def _nothing() -> LimitDecision:
@@ -414,12 +610,16 @@ def _domain(entry: dict, where: str) -> SwingDomain:
         raise LimitFileError(f"{where}.{field}: {error}") from error
 
 
-def _twist(entry: dict, kind: str, where: str):
-    """BallLimit: (min, max) rad; SwingLimit: locked (True) or free (False)."""
-    value = entry.get("twist", "locked" if kind == "swing" else None)
+def _twist(entry: dict, kind: str, where: str, group: bool = False):
+    """BallLimit: (min, max) rad; SwingLimit: locked (True) or free (False); a group:
+    (min, max) or None (free), a locked swing group (0, 0)."""
+    value = entry.get("twist", "locked" if kind == "swing" and not group else
+                      "free" if kind == "swing" else None)
     if kind == "swing":
         if value not in ("locked", "free"):
             raise LimitFileError(f"{where}.twist of a swing joint must be 'locked' or 'free'")
+        if group:
+            return (0.0, 0.0) if value == "locked" else None
         return value == "locked"
     if not isinstance(value, list) or len(value) != 2:
         raise LimitFileError(f"{where}.twist must be [min, max] (rad)")
@@ -429,35 +629,77 @@ def _twist(entry: dict, kind: str, where: str):
     return low, high
 
 
+def _group_joints(entry: dict, kind: str, where: str, robot) -> list:
+    joints = entry["joints"]
+    if not isinstance(joints, list) or not all(isinstance(j, str) for j in joints):
+        raise LimitFileError(f"{where}.joints must be a list of joint names")
+    needed = (3,) if kind == "ball" else (2, 3)
+    if len(joints) not in needed:
+        raise LimitFileError(f"{where}.joints: a {kind} group needs "
+                             f"{' or '.join(map(str, needed))} joints, got {len(joints)}")
+    for joint in joints:
+        if not robot.model.existJointName(joint):
+            raise LimitFileError(f"{where}.joints: the robot has no joint {joint!r}")
+    return joints
+
+
 def parse_limits(document, robot) -> list:
     """Limit models from a parsed limit file (see load_limit_file)."""
     if not isinstance(document, dict) or not isinstance(document.get("joints"), dict):
         raise LimitFileError("a limit file needs a 'joints' mapping")
     default = _number(document.get("activation", 0.2), "activation", True)
-    models = []
-    for joint, entry in document["joints"].items():
-        where = f"joints.{joint}"
+    models, owners = [], {}
+    for name, entry in document["joints"].items():
+        where = f"joints.{name}"
         if not isinstance(entry, dict):
             raise LimitFileError(f"{where} must be a mapping")
-        unknown = set(entry) - {"type", "cone", "polygon", "twist", "activation"}
+        unknown = set(entry) - {"type", "cone", "polygon", "twist", "activation", "joints"}
         if unknown:
             raise LimitFileError(f"{where}: unknown field(s) {', '.join(sorted(unknown))}")
         kind = entry.get("type")
         if kind not in JOINT_TYPES:
             raise LimitFileError(f"{where}.type must be one of {', '.join(JOINT_TYPES)}")
-        if not robot.model.existJointName(joint):
-            raise LimitFileError(f"{where}: the robot has no joint {joint!r}")
+        group = "joints" in entry
+        joints = _group_joints(entry, kind, where, robot) if group else [name]
+        if not group and not robot.model.existJointName(name):
+            raise LimitFileError(f"{where}: the robot has no joint {name!r}")
+        for joint in joints:
+            if joint in owners:
+                raise LimitFileError(f"{where}: joint {joint!r} is already limited by "
+                                     f"joints.{owners[joint]}")
+            owners[joint] = name
         activation = _number(entry.get("activation", default), f"{where}.activation", True)
-        domain, twist = _domain(entry, where), _twist(entry, kind, where)
+        domain, twist = _domain(entry, where), _twist(entry, kind, where, group)
         try:
-            models.append(JOINT_TYPES[kind].for_joint(robot, joint, domain, twist, activation))
+            models.append(JointGroupLimit(name, robot, joints, domain, twist, activation)
+                          if group else
+                          JOINT_TYPES[kind].for_joint(robot, name, domain, twist, activation))
         except ValueError as error:
             raise LimitFileError(f"{where}: {error}") from error
     return models
 
 
+SHIPPED_LIMIT_FILES = Path(__file__).resolve().parent / "data"
+
+
+def limit_file_path(spec) -> Path:
+    """A limit file: the path `spec`, or the shipped data/<spec>_limits.yaml (e.g. talos,
+    mannequin) when spec is a bare name."""
+    path = Path(spec)
+    if path.exists() or path.suffix or len(path.parts) > 1:
+        return path
+    shipped = SHIPPED_LIMIT_FILES / f"{spec}_limits.yaml"
+    if shipped.is_file():
+        return shipped
+    names = sorted(p.name[:-len("_limits.yaml")]
+                   for p in SHIPPED_LIMIT_FILES.glob("*_limits.yaml"))
+    raise LimitFileError(f"{spec}: no such limit file, nor a shipped one "
+                         f"({', '.join(names)})")
+
+
 def load_limit_file(path, robot) -> list:
-    """Limit models of a YAML limit file:
+    """Limit models of a YAML limit file (a path, or a shipped file's name: see
+    limit_file_path):
 
         activation: 0.2                     # default q_hat (rad)
         joints:
@@ -466,9 +708,15 @@ def load_limit_file(path, robot) -> list:
             cone: {a: .., b: ..}            # or polygon: [[x, y, z], ...] (joint frame)
             twist: [min, max]               # ball (rad); swing: locked (default) | free
             activation: 0.15                # optional, rad
+          <group name>:                     # 2-3 revolute joints limited as one
+            type: ball | swing              # ball: 3 joints; swing: 2 or 3
+            joints: [<joint>, <joint>, ...] # a chain, parent first (JointGroupLimit)
+            cone: ... | polygon: ...        # in the last joint's frame at zero angles
+            twist: [min, max]               # ball; swing: free (default) | locked
     """
+    path = limit_file_path(path)
     try:
-        document = yaml.safe_load(Path(path).read_text())
+        document = yaml.safe_load(path.read_text())
     except yaml.YAMLError as error:
         raise LimitFileError(f"{path}: not valid YAML: {error}") from error
     return parse_limits(document, robot)

@@ -1,0 +1,173 @@
+"""Groups of revolute joints limited as one swing or ball-and-socket joint (JointGroupLimit):
+Talos' hips and shoulders from the shipped limit file. The group rotation turned back into
+angles; limit file errors; whole PIK runs where no group leaves its cone and no joint its
+URDF bounds, and where the cones do bind."""
+
+import math
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import yaml
+from helpers.problems import random_offset
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from stance.pik import PIKSolver
+from stance.robot import Robot
+from stance.stack import TaskSpec
+from stance.swing import (JointGroupLimit, LimitFileError, limit_file_path, load_limit_file,
+                          parse_limits, swing_twist)
+
+SWING_TOLERANCE = math.radians(0.5)
+BOUND_TOLERANCE = 1e-9
+PROPERTY = settings(max_examples=50, deadline=None, derandomize=True, database=None)
+SEEDS = st.integers(0, 2**32 - 1)
+
+
+@pytest.fixture(scope="module")
+def talos():
+    return Robot.load("talos")
+
+
+@pytest.fixture(scope="module")
+def groups(talos):
+    return load_limit_file("talos", talos)
+
+
+def test_shipped_file_groups_talos_hips_and_shoulders(talos, groups):
+    assert limit_file_path("talos").name == "talos_limits.yaml"
+    assert all(isinstance(model, JointGroupLimit) for model in groups)
+    assert {model.name for model in groups} == {"left_hip", "right_hip", "left_shoulder",
+                                                "right_shoulder"}
+    q = talos.initial_configuration()
+    for model in groups:
+        s, _ = swing_twist(model.rotation(q))
+        assert model.domain.signed_distance(s) > 0.0, model.name  # half_sitting is inside
+    solver = PIKSolver(talos, limit_models=groups)
+    names = solver.limited_dof_names
+    assert len(names) == len(set(names)) and set(names) == set(talos.limited_joint_names)
+
+
+@settings(max_examples=20, deadline=None, derandomize=True, database=None)
+@given(seed=SEEDS)
+def test_group_rotation_is_the_kinematic_chains(talos, groups, seed):
+    """R(angles) = (parent frame * first placement)^T * last joint frame, by Pinocchio."""
+    rng = np.random.default_rng(seed)
+    q = talos.initial_configuration()
+    for model in groups:
+        q[model.q_index] = rng.uniform(model.bounds.lower, model.bounds.upper)
+    data = talos.model.createData()
+    pin.forwardKinematics(talos.model, data, q)
+    for model, joints in ((model, [talos.joint_id(j) for j in model.dof_names])
+                          for model in groups):
+        first = data.oMi[talos.model.parents[joints[0]]] * talos.model.jointPlacements[joints[0]]
+        expected = first.rotation.T @ data.oMi[joints[-1]].rotation
+        np.testing.assert_allclose(model.rotation(q), expected, atol=1e-12)
+
+
+@settings(max_examples=50, deadline=None, derandomize=True, database=None)
+@given(seed=SEEDS)
+def test_a_group_rotation_is_turned_back_into_angles(groups, seed):
+    """angles_for finds angles reaching the rotation of random in-bounds angles, from a start
+    0.3 rad away per joint (the shoulders' yaws are aligned at zero roll: only the rotation
+    is unique there)."""
+    rng = np.random.default_rng(seed)
+    for model in groups:
+        angles = rng.uniform(model.bounds.lower, model.bounds.upper)
+        rotation = model.rotation_and_axes(angles)[0]
+        found = model.angles_for(rotation, angles + rng.uniform(-0.3, 0.3, len(angles)))
+        error = rotation.T @ model.rotation_and_axes(found)[0]
+        assert np.linalg.norm(error - np.eye(3)) < 1e-10, model.name
+
+
+def group_file(joints, kind="ball", **extra) -> dict:
+    entry = {"type": kind, "joints": joints, "cone": {"a": 0.6, "b": 2.0}, **extra}
+    if kind == "ball":
+        entry.setdefault("twist", [-0.3, 0.3])
+    return {"joints": {"hip": entry}}
+
+
+HIP = ["leg_left_1_joint", "leg_left_2_joint", "leg_left_3_joint"]
+
+
+@pytest.mark.parametrize("document, words", [
+    (group_file(["leg_left_1_joint", "no_such_joint", "leg_left_3_joint"]),
+     ["joints.hip.joints", "no joint 'no_such_joint'"]),
+    (group_file(HIP[:2]), ["joints.hip.joints", "ball group needs 3 joints"]),
+    (group_file(["leg_left_1_joint", "leg_left_3_joint"], kind="swing"),
+     ["joints.hip", "not a child of the joint before it"]),
+    (group_file(HIP, joints_extra=1), ["joints.hip", "unknown field"]),
+    (group_file("leg_left_1_joint"), ["joints.hip.joints", "list of joint names"]),
+    ({"joints": {**group_file(HIP)["joints"],
+                 "thigh": {"type": "swing", "joints": HIP[1:], "cone": {"a": 0.5, "b": 0.5}}}},
+     ["joints.thigh", "'leg_left_2_joint' is already limited by joints.hip"]),
+])
+def test_limit_file_group_errors_name_the_field(talos, document, words):
+    with pytest.raises(LimitFileError) as error:
+        parse_limits(yaml.safe_load(yaml.safe_dump(document)), talos)
+    for word in words:
+        assert word in str(error.value)
+
+
+def test_unknown_shipped_limit_file_lists_the_shipped_ones():
+    with pytest.raises(LimitFileError, match="mannequin, talos"):
+        limit_file_path("no_such_robot")
+
+
+# Whole runs: right foot > CoM > left foot and both hands toward random targets > posture.
+
+def swing_excess(model, q) -> float:
+    s, _ = swing_twist(model.rotation(q))
+    return max(0.0, -model.domain.signed_distance(s))
+
+
+def bound_excess(model, q) -> float:
+    angles = q[model.q_index]
+    return float(max(0.0, np.max(angles - model.bounds.upper),
+                     np.max(model.bounds.lower - angles)))
+
+
+def run(robot, groups, seed, reachable, strategy="progressive", steps=40):
+    rng = np.random.default_rng(seed)
+    q = robot.initial_configuration()
+    solver = PIKSolver(robot, strategy=strategy, limit_models=groups)
+    moving = ("left_sole_link", "gripper_left_base_link", "gripper_right_base_link")
+    solver.set_stack([
+        TaskSpec("right_foot", "pose", frame="right_sole_link", priority=0, gain=0.5),
+        TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
+        *[TaskSpec(frame, "position", frame=frame, priority=2, gain=0.5) for frame in moving],
+        TaskSpec("posture", "posture", priority=3, gain=0.02)], q)
+    for frame in moving:
+        task = solver.task(frame)
+        target = task.target
+        target.translation += random_offset(rng, reachable)
+        task.set_target(target)
+    for _ in range(steps):
+        result = solver.step(q)
+        q = result.q
+        yield q, result
+
+
+@pytest.mark.parametrize("strategy", ["clamping", "progressive"])
+@PROPERTY
+@given(seed=SEEDS, reachable=st.booleans())
+def test_no_group_leaves_its_cone_nor_a_joint_its_bounds(talos, groups, strategy, seed,
+                                                         reachable):
+    for q, _ in run(talos, groups, seed, reachable, strategy):
+        for model in groups:
+            assert swing_excess(model, q) <= SWING_TOLERANCE, model.name
+            assert bound_excess(model, q) <= BOUND_TOLERANCE, model.name
+
+
+def test_the_cones_bind_and_without_a_strategy_are_left(talos, groups):
+    """Unreachable targets drive a hip or shoulder into its cone's damping zone, where it is
+    held; no strategy lets the same runs out of the cones."""
+    def closest(strategy, steps):
+        return min(model.domain.signed_distance(swing_twist(model.rotation(q))[0])
+                   for seed in range(3) for q, _ in run(talos, groups, seed, False, strategy,
+                                                        steps)
+                   for model in groups)
+
+    assert -SWING_TOLERANCE <= closest("progressive", 40) < groups[0].thickness
+    assert closest("none", 80) < -5 * SWING_TOLERANCE
