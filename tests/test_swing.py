@@ -103,6 +103,22 @@ def test_cone_matches_brute_force(seed):
             distances.min() if inside else -distances.min(), abs=1e-5)
 
 
+@pytest.mark.parametrize("a, b", [(0.6, 2.1), (2.1, 0.6)], ids=["a<b", "a>b"])
+@pytest.mark.parametrize("tiny", [0.0, -0.0, 1.8e-19, -3e-14])
+def test_cone_closest_point_on_and_next_to_the_axes(a, b, tiny):
+    """Swings on an axis up to rounding (a Talos hip at half_sitting: s_x = 1.8e-19) once
+    divided by zero in the bisection."""
+    cone = EllipticCone(a, b)
+    t = np.linspace(0, 2 * np.pi, 200001)
+    boundary = np.stack([a * np.cos(t), b * np.sin(t)], axis=1)
+    for s in ([tiny, -0.411], [0.411, tiny], [tiny, 1.9], [2.0, tiny]):
+        s = np.array(s)
+        closest = cone.closest_boundary_point(s)
+        assert (closest[0] / a) ** 2 + (closest[1] / b) ** 2 == pytest.approx(1.0)
+        assert np.linalg.norm(closest - s) == pytest.approx(
+            np.linalg.norm(boundary - s, axis=1).min(), abs=1e-5)
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_polygon_matches_brute_force(seed):
     rng = np.random.default_rng(seed)

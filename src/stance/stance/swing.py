@@ -122,6 +122,9 @@ class SwingDomain:
         return self.signed_distance(s) >= -tolerance
 
 
+NEGLIGIBLE_COMPONENT = 1e-12
+
+
 @numba.njit(cache=True)
 def _ellipse_closest_point(a, b, x, y):
     """Closest point of the ellipse (x/a)^2 + (y/b)^2 = 1 to (x, y) (Eberly's bisection)."""
@@ -129,8 +132,10 @@ def _ellipse_closest_point(a, b, x, y):
     if swap:
         a, b, x, y = b, a, y, x
     y0, y1 = abs(x), abs(y)
-    if y1 > 0.0:
-        if y0 > 0.0:
+    # components below NEGLIGIBLE_COMPONENT * axis count as on the axis: a smaller y1 makes
+    # -b^2 + b y1 round to -b^2, and the bisection would divide by t + b^2 = 0
+    if y1 > NEGLIGIBLE_COMPONENT * b:
+        if y0 > NEGLIGIBLE_COMPONENT * a:
             low = -b * b + b * y1
             high = -b * b + math.sqrt(a * a * y0 * y0 + b * b * y1 * y1)
             for _ in range(200):
