@@ -234,7 +234,10 @@ def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
     (["-p", "robot:=mannequin", "-p", "rate:=50.0"],
      lambda status: "right_shoulder_swing_x" in status.joint_names
      and "right_shoulder_twist" in status.joint_names),
-], ids=["qp hierarchy", "mannequin with swing limits"])
+    (["-p", "limits_file:=talos"],
+     lambda status: status.joint_names.count("leg_left_2_joint") == 1
+     and "arm_right_3_joint" in status.joint_names),
+], ids=["qp hierarchy", "mannequin with swing limits", "talos with joint groups"])
 def test_node_variants_run_and_report(tmp_path, parameters, check):
     domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200  # away from the module's node
     group = ProcessGroup(tmp_path)
@@ -257,6 +260,7 @@ def test_node_variants_run_and_report(tmp_path, parameters, check):
     ("hierarchy:=bogus", "unknown hierarchy"),
     ("strategy:=bogus", "unknown joint limit strategy"),
     ("robot:=no_such_robot", "unknown example-robot-data robot"),
+    ("limits_file:=no_such_robot", "no such limit file, nor a shipped one"),
 ])
 def test_bad_startup_parameter_is_refused_with_its_reason(tmp_path, parameter, reason):
     group = ProcessGroup(tmp_path)

@@ -123,7 +123,8 @@ class PikNode(Node):
         self.declare_parameter("robot", "talos", describe(
             "example-robot-data name, URDF path (free-flyer base) or mannequin"))
         self.declare_parameter("limits_file", "", describe(
-            "YAML of swing and ball-and-socket joint limits; empty = the robot's own, if any"))
+            "YAML of swing and ball-and-socket joint limits (joint groups too), or a shipped "
+            "file's name (talos, mannequin); empty = the robot's own, if any"))
         self.declare_parameter("initial_configuration", "", describe(
             "named reference configuration (SRDF), default half_sitting or neutral"))
         self.declare_parameter("stack_file", "", describe(
