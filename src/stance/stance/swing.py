@@ -187,6 +187,36 @@ class EllipticCone(SwingDomain):
         return normal / np.linalg.norm(normal)
 
 
+@numba.njit(cache=True)
+def _cross(a, b):
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
+
+
+@numba.njit(cache=True)
+def _polygon_closest(direction, vertices, ends, arc_axes):
+    """SphericalPolygon._closest: per edge, the direction projected on its great circle if
+    it falls inside the arc, else the nearer end; the candidate with the largest cosine."""
+    best = vertices[0].copy()
+    best_cosine, best_edge, at_vertex = -2.0, 0, False
+    for edge in range(len(vertices)):
+        start, end, axis = vertices[edge], ends[edge], arc_axes[edge]
+        projected = direction - (direction @ axis) * axis
+        length = np.sqrt(projected @ projected)
+        candidate = start
+        vertex = True
+        if length > 1e-12:
+            projected = projected / length
+            if _cross(start, projected) @ axis >= 0.0 and _cross(projected, end) @ axis >= 0.0:
+                candidate, vertex = projected, False
+        if vertex and direction @ end > direction @ start:
+            candidate = end
+        cosine = direction @ candidate
+        if cosine > best_cosine:
+            best, best_cosine, best_edge, at_vertex = candidate.copy(), cosine, edge, vertex
+    return best, best_edge, at_vertex
+
+
 class SphericalPolygon(SwingDomain):
     """Convex spherical polygon of bone directions (joint frame) containing the rest
     direction z strictly inside; edges are great-circle arcs between consecutive vertices.
@@ -219,25 +249,10 @@ class SphericalPolygon(SwingDomain):
 
     def _closest(self, direction):
         """(closest boundary direction, index of its edge, at a vertex) for a unit direction."""
-        best, best_cosine, best_edge, at_vertex = None, -2.0, 0, False
-        for edge, (start, end, axis) in enumerate(
-                zip(self.vertices, self._edge_ends, self._arc_axes)):
-            projected = direction - (direction @ axis) * axis
-            length = np.linalg.norm(projected)
-            candidate, vertex = None, False
-            if length > 1e-12:
-                projected /= length
-                inside_arc = (np.cross(start, projected) @ axis >= 0.0
-                              and np.cross(projected, end) @ axis >= 0.0)
-                if inside_arc:
-                    candidate = projected
-            if candidate is None:
-                vertex = True
-                candidate = start if direction @ start >= direction @ end else end
-            cosine = direction @ candidate
-            if cosine > best_cosine:
-                best, best_cosine, best_edge, at_vertex = candidate, cosine, edge, vertex
-        return best, best_edge, at_vertex
+        best, edge, at_vertex = _polygon_closest(np.asarray(direction, dtype=float),
+                                                 self.vertices, self._edge_ends,
+                                                 self._arc_axes)
+        return best, int(edge), bool(at_vertex)
 
     def contains(self, s, tolerance: float = 0.0) -> bool:
         return bool(np.all(self.inward_normals @ swing_direction(s) >= -math.sin(tolerance)))
@@ -248,7 +263,7 @@ class SphericalPolygon(SwingDomain):
     def signed_distance(self, s) -> float:
         direction = swing_direction(s)
         closest = self._closest(direction)[0]
-        angle = math.atan2(np.linalg.norm(np.cross(direction, closest)), direction @ closest)
+        angle = math.atan2(np.linalg.norm(_cross(direction, closest)), direction @ closest)
         inside = np.all(self.inward_normals @ direction >= 0.0)
         return angle if inside else -angle
 
@@ -303,6 +318,32 @@ class SwingTwistRule:
         self.thickness = float(activation)
         self.twist = None if twist is None else RevoluteLimits(
             [f"{name}_twist"], [0], [0], [twist[0]], [twist[1]], activation)
+        self._state_key, self._state = None, None
+
+    def may_reach(self, key: bytes, rotation, reach: float, zone: float) -> bool:
+        """Whether the joint rotation `rotation` (its configuration bytes: `key`, a cache key
+        for the clamping loop's repeated questions), turned by at most `reach` rad, may bring
+        the swing within `zone` rad of its domain's boundary or the twist into its damping
+        zone (zone > 0) or past a bound (zone = 0). False is certain: the bone direction
+        turns by at most reach, the swing vector by at most reach g with g = a / sin a at
+        the largest swing angle a reachable, the twist by at most reach (1 + g)."""
+        if self._state_key != key:
+            s, theta = swing_twist(rotation)
+            self._state_key = key
+            self._state = (s, theta, self.domain.signed_distance(s))
+        s, theta, distance = self._state
+        widest = float(np.hypot(s[0], s[1])) + reach
+        if widest >= 0.9 * math.pi:
+            return True
+        stretch = widest / math.sin(widest) if widest > 1e-9 else 1.0
+        if distance - reach * stretch <= zone:
+            return True
+        if self.twist is None:
+            return False
+        twist = self.twist
+        low, high = (twist.lower_threshold[0], twist.upper_threshold[0]) if zone > 0.0 else \
+            (twist.lower[0], twist.upper[0])
+        return min(theta - low, high - theta) - reach * (1.0 + stretch) <= 0.0
 
     def altered(self, rotation, rotation_next, progressive: bool) -> tuple:
         """(altered next rotation or None when the move is left alone, swing h, twist h)
@@ -379,6 +420,9 @@ class BallLimit(SwingTwistRule):
                 or np.linalg.norm(velocity) <= NEGLIGIBLE_VARIATION):
             return _nothing()
         rotation = self.rotation(q)
+        if not self.may_reach(q[self.q_slice].tobytes(), rotation,
+                              float(np.linalg.norm(velocity)), self.thickness):
+            return _nothing()
         target, swing_h, twist_h = self.altered(rotation, rotation @ pin.exp3(velocity),
                                                 progressive)
         if target is None:
@@ -390,7 +434,11 @@ class BallLimit(SwingTwistRule):
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's joint rotation (in place) into the limits without moving it
         further out than q: removes the negligible overshoot the decisions ignored."""
-        rotation = self.projected(self.rotation(q), self.rotation(q_next))
+        current, following = self.rotation(q), self.rotation(q_next)
+        turn = float(np.linalg.norm(pin.log3(current.T @ following)))
+        if not self.may_reach(q[self.q_slice].tobytes(), current, turn, 0.0):
+            return
+        rotation = self.projected(current, following)
         if rotation is not None:
             q_next[self.q_slice] = pin.Quaternion(rotation).coeffs()
 
@@ -472,7 +520,6 @@ class JointGroupLimit(SwingTwistRule):
         bounds = (model.lowerPositionLimit[self.q_index], model.upperPositionLimit[self.q_index])
         local = np.arange(len(ids))
         self.bounds = RevoluteLimits(joints, local, local, *bounds, activation)
-        self._state_key, self._state = None, None
 
     def rotation(self, q) -> np.ndarray:
         """Group rotation R at configuration q (nq)."""
@@ -482,33 +529,6 @@ class JointGroupLimit(SwingTwistRule):
         """(group rotation R, (3, n) joint axes in the group frame) at joint angles (rad)."""
         return _group_rotation(self.placements, self.axis_index,
                                np.asarray(angles, dtype=float))
-
-    def _may_reach(self, angles, variation, zone: float) -> bool:
-        """Whether a move by `variation` (rad per joint) from `angles` may bring the swing
-        within `zone` (rad) of its domain's boundary or the twist within its damping zone
-        (zone > 0) or bound (zone = 0). False is certain: the rotation turns by at most
-        r = sum |variation|, the bone direction too, the swing vector by at most
-        r g with g = a / sin a at the largest swing angle a reachable, the twist by at most
-        r (1 + g). The state at `angles` is cached (the clamping loop asks again)."""
-        key = angles.tobytes()
-        if self._state_key != key:
-            s, theta = swing_twist(self.rotation_and_axes(angles)[0])
-            self._state_key = key
-            self._state = (s, theta, self.domain.signed_distance(s))
-        s, theta, distance = self._state
-        reach = float(np.sum(np.abs(variation)))
-        widest = float(np.hypot(s[0], s[1])) + reach
-        if widest >= 0.9 * math.pi:
-            return True
-        stretch = widest / math.sin(widest) if widest > 1e-9 else 1.0
-        if distance - reach * stretch <= zone:
-            return True
-        if self.twist is None:
-            return False
-        twist = self.twist
-        low, high = (twist.lower_threshold[0], twist.upper_threshold[0]) if zone > 0.0 else \
-            (twist.lower[0], twist.upper[0])
-        return min(theta - low, high - theta) - reach * (1.0 + stretch) <= 0.0
 
     def angles_for(self, target, start, movable=None) -> np.ndarray:
         """Joint angles (rad) whose group rotation is `target` (or closest to it), by
@@ -536,10 +556,11 @@ class JointGroupLimit(SwingTwistRule):
             return _nothing()
         h, altered = np.zeros(len(angles)), np.zeros(len(angles), dtype=bool)
         target = None
-        if self._may_reach(angles, variation, self.thickness):
+        rotation = self.rotation_and_axes(angles)[0]
+        if self.may_reach(angles.tobytes(), rotation, float(np.sum(np.abs(variation))),
+                          self.thickness):
             target, swing_h, twist_h = self.altered(
-                self.rotation_and_axes(angles)[0],
-                self.rotation_and_axes(angles + variation)[0], progressive)
+                rotation, self.rotation_and_axes(angles + variation)[0], progressive)
         if target is not None:
             reached = self.angles_for(target, angles, movable)
             variation[movable] = reached[movable] - angles[movable]
@@ -562,10 +583,11 @@ class JointGroupLimit(SwingTwistRule):
         have the last word)."""
         angles, following = q[self.q_index], q_next[self.q_index].copy()
         self.bounds.keep_inside(angles, following)
-        if not self._may_reach(angles, following - angles, 0.0):
+        start = self.rotation_and_axes(angles)[0]
+        if not self.may_reach(angles.tobytes(), start,
+                              float(np.sum(np.abs(following - angles))), 0.0):
             q_next[self.q_index] = following
             return
-        start = self.rotation_and_axes(angles)[0]
         for _ in range(KEEP_INSIDE_ROUNDS):
             rotation = self.projected(start, self.rotation_and_axes(following)[0])
             if rotation is None:
