@@ -9,13 +9,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
-from helpers.problems import random_offset
+from helpers.limit_runs import bound_excess, swing_excess, talos_group_run
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from stance.pik import PIKSolver
 from stance.robot import Robot
-from stance.stack import TaskSpec
 from stance.swing import (JointGroupLimit, LimitFileError, limit_file_path, load_limit_file,
                           parse_limits, swing_twist)
 
@@ -115,46 +114,12 @@ def test_unknown_shipped_limit_file_lists_the_shipped_ones():
         limit_file_path("no_such_robot")
 
 
-# Whole runs: right foot > CoM > left foot and both hands toward random targets > posture.
-
-def swing_excess(model, q) -> float:
-    s, _ = swing_twist(model.rotation(q))
-    return max(0.0, -model.domain.signed_distance(s))
-
-
-def bound_excess(model, q) -> float:
-    angles = q[model.q_index]
-    return float(max(0.0, np.max(angles - model.bounds.upper),
-                     np.max(model.bounds.lower - angles)))
-
-
-def run(robot, groups, seed, reachable, strategy="progressive", steps=40):
-    rng = np.random.default_rng(seed)
-    q = robot.initial_configuration()
-    solver = PIKSolver(robot, strategy=strategy, limit_models=groups)
-    moving = ("left_sole_link", "gripper_left_base_link", "gripper_right_base_link")
-    solver.set_stack([
-        TaskSpec("right_foot", "pose", frame="right_sole_link", priority=0, gain=0.5),
-        TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
-        *[TaskSpec(frame, "position", frame=frame, priority=2, gain=0.5) for frame in moving],
-        TaskSpec("posture", "posture", priority=3, gain=0.02)], q)
-    for frame in moving:
-        task = solver.task(frame)
-        target = task.target
-        target.translation += random_offset(rng, reachable)
-        task.set_target(target)
-    for _ in range(steps):
-        result = solver.step(q)
-        q = result.q
-        yield q, result
-
-
 @pytest.mark.parametrize("strategy", ["clamping", "progressive"])
 @PROPERTY
 @given(seed=SEEDS, reachable=st.booleans())
 def test_no_group_leaves_its_cone_nor_a_joint_its_bounds(talos, groups, strategy, seed,
                                                          reachable):
-    for q, _ in run(talos, groups, seed, reachable, strategy):
+    for q, _ in talos_group_run(talos, groups, seed, reachable, strategy):
         for model in groups:
             assert swing_excess(model, q) <= SWING_TOLERANCE, model.name
             assert bound_excess(model, q) <= BOUND_TOLERANCE, model.name
@@ -165,7 +130,7 @@ def test_the_cones_bind_and_without_a_strategy_are_left(talos, groups):
     held; no strategy lets the same runs out of the cones."""
     def closest(strategy, steps):
         return min(model.domain.signed_distance(swing_twist(model.rotation(q))[0])
-                   for seed in range(3) for q, _ in run(talos, groups, seed, False, strategy,
+                   for seed in range(3) for q, _ in talos_group_run(talos, groups, seed, False, strategy,
                                                         steps)
                    for model in groups)
 

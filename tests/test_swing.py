@@ -12,14 +12,13 @@ import math
 import numpy as np
 import pinocchio as pin
 import pytest
-from helpers.problems import random_offset
+from helpers.limit_runs import (mannequin_run, mannequin_start, set_swing_twist, swing_excess,
+                                twist_excess)
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from stance.limits import cubic_step
 from stance.models import MANNEQUIN_LIMIT_FILE, build_mannequin
-from stance.pik import PIKSolver
-from stance.stack import TaskSpec
 from stance.swing import (BallLimit, EllipticCone, LimitFileError, SphericalPolygon,
                           SwingLimit, damp_swing, load_limit_file, parse_limits,
                           rotation_from_swing_twist, swing_direction, swing_from_direction,
@@ -261,22 +260,13 @@ def limit_models(mannequin):
     return load_limit_file(MANNEQUIN_LIMIT_FILE, mannequin)
 
 
-def joint_q(robot, joint):
-    joint_model = robot.model.joints[robot.joint_id(joint)]
-    return slice(joint_model.idx_q, joint_model.idx_q + 4), joint_model.idx_v
-
-
-def set_swing_twist(robot, q, joint, s, theta):
-    q[joint_q(robot, joint)[0]] = pin.Quaternion(rotation_from_swing_twist(s, theta)).coeffs()
-
-
 def test_ball_decision_fixes_the_joint_on_the_damped_target(mannequin):
     model = BallLimit.for_joint(mannequin, "left_hip", CONE, twist=(-0.5, 0.5))
     q = mannequin.initial_configuration("standing")
     s = point_inside_by(CONE, 0.05)
     set_swing_twist(mannequin, q, "left_hip", s, 0.45)
     tangent, normal = tangent_and_normal(CONE, s)
-    _, v = joint_q(mannequin, "left_hip")
+    v = mannequin.model.joints[mannequin.joint_id("left_hip")].idx_v
     rotation = rotation_from_swing_twist(s, 0.45)
     candidate = rotation_from_swing_twist(s + 0.003 * normal + 0.002 * tangent, 0.47)
     dq = np.zeros(mannequin.model.nv)
@@ -295,7 +285,7 @@ def test_ball_decision_fixes_the_joint_on_the_damped_target(mannequin):
 def test_swing_limit_locks_the_twist(mannequin):
     model = SwingLimit.for_joint(mannequin, "left_wrist", CONE, twist_locked=True)
     q = mannequin.initial_configuration("standing")
-    _, v = joint_q(mannequin, "left_wrist")
+    v = mannequin.model.joints[mannequin.joint_id("left_wrist")].idx_v
     dq = np.zeros(mannequin.model.nv)
     dq[v:v + 3] = [0.01, 0.02, 0.1]
     decision = model.decide(q, dq, np.ones(mannequin.model.nv, dtype=bool), True)
@@ -350,64 +340,13 @@ def test_limit_file_rejects_joints_that_cannot_hold_a_swing_limit(mannequin, joi
                      mannequin)
 
 
-# Whole runs: feet > CoM > right hand and right toes > posture.
-
-def swing_excess(model, q) -> float:
-    """How far (rad) the joint's swing lies outside its domain (0 inside)."""
-    s, _ = swing_twist(model.rotation(q))
-    return max(0.0, -model.domain.signed_distance(s))
-
-
-def twist_excess(model, q) -> float:
-    if model.twist is None:
-        return 0.0
-    theta = swing_twist(model.rotation(q))[1]
-    return max(0.0, theta - model.twist.upper[0], model.twist.lower[0] - theta)
-
-
-def random_start(robot, limit_models, rng) -> np.ndarray:
-    """Standing, with every swing/ball joint at a random state inside its limits."""
-    q = robot.initial_configuration("standing")
-    for model in limit_models:
-        while True:
-            s = rng.uniform(-1.5, 1.5, 2)
-            if model.domain.contains(s):
-                break
-        theta = 0.0 if model.twist is None else rng.uniform(model.twist.lower[0],
-                                                            model.twist.upper[0])
-        set_swing_twist(robot, q, model.joint, s, theta)
-    return q
-
-
-def run(robot, limit_models, start, seed, reachable, strategy="progressive", steps=40):
-    """Configurations after each IK step toward random right hand and toe targets, moved
-    by < 0.3 m (reachable) or 1-3 m (unreachable)."""
-    rng = np.random.default_rng(seed)
-    solver = PIKSolver(robot, strategy=strategy, limit_models=limit_models)
-    solver.set_stack([
-        TaskSpec("left_sole", "pose", frame="left_sole", priority=0, gain=0.5),
-        TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
-        TaskSpec("right_hand", "position", frame="right_hand", priority=2, gain=0.5),
-        TaskSpec("right_toe", "position", frame="right_toe", priority=2, gain=0.5),
-        TaskSpec("posture", "posture", priority=3, gain=0.02)], start)
-    for name in ("right_hand", "right_toe"):
-        task = solver.task(name)
-        target = task.target
-        target.translation += random_offset(rng, reachable)
-        task.set_target(target)
-    q = start
-    for _ in range(steps):
-        q = solver.step(q).q
-        yield q
-
-
 @pytest.mark.parametrize("strategy", ["clamping", "progressive"])
 @PROPERTY
 @given(seed=SEEDS, reachable=st.booleans())
 def test_no_swing_or_twist_ever_leaves_its_limits(mannequin, limit_models, strategy, seed,
                                                    reachable):
-    start = random_start(mannequin, limit_models, np.random.default_rng(seed))
-    for q in run(mannequin, limit_models, start, seed, reachable, strategy):
+    start = mannequin_start(mannequin, limit_models, np.random.default_rng(seed))
+    for q, _ in mannequin_run(mannequin, limit_models, start, seed, reachable, strategy):
         for model in limit_models:
             assert swing_excess(model, q) <= SWING_TOLERANCE, model.joint
             assert twist_excess(model, q) <= TWIST_TOLERANCE, model.joint
@@ -426,7 +365,7 @@ def test_a_joint_started_outside_moves_back_and_never_further_out(
     """Swings pushed 0.05-0.3 rad out of their domain, ball twists 0.05-0.3 rad past a
     bound: no step takes them further out, and they end back inside."""
     rng = np.random.default_rng(seed)
-    start = random_start(mannequin, limit_models, rng)
+    start = mannequin_start(mannequin, limit_models, rng)
     for index in rng.choice(len(limit_models), outside, replace=False):
         model = limit_models[index]
         s, theta = swing_twist(model.rotation(start))
@@ -437,7 +376,7 @@ def test_a_joint_started_outside_moves_back_and_never_further_out(
         set_swing_twist(mannequin, start, model.joint, s, theta)
     excess = excesses(limit_models, start)
     assert excess.max() > 0.0
-    for q in run(mannequin, limit_models, start, seed, reachable):
+    for q, _ in mannequin_run(mannequin, limit_models, start, seed, reachable):
         next_excess = excesses(limit_models, q)
         assert np.all(next_excess <= excess + 1e-9)
         excess = next_excess
@@ -448,8 +387,7 @@ def test_a_joint_started_outside_moves_back_and_never_further_out(
 def test_strategy_none_lets_swings_leave_their_limits(mannequin, limit_models):
     """Sanity check of the harness: without a limit strategy the same runs leave limits."""
     start = mannequin.initial_configuration("standing")
-    worst = max(swing_excess(model, q) for q in run(mannequin, limit_models, start, seed=2,
-                                                    reachable=False, strategy="none",
-                                                    steps=100)
+    worst = max(swing_excess(model, q) for q, _ in mannequin_run(
+        mannequin, limit_models, start, seed=2, reachable=False, strategy="none", steps=100)
                 for model in limit_models)
     assert worst > 5 * SWING_TOLERANCE

@@ -1,0 +1,71 @@
+"""10^5 random IK steps with swing and ball-and-socket limits (issue 3, reliability): the
+mannequin's eleven spherical joints and Talos' four joint groups, clamping and progressive
+clamping, random starts and reachable or unreachable targets. No swing ends a step more
+than 0.5 degrees outside its cone or polygon, no twist beyond its interval by more than
+1e-9 rad, no grouped joint beyond its own bounds by more than 1e-9 rad; on the mannequin
+a swing started outside never moves further out."""
+
+import math
+
+import numpy as np
+import pytest
+from helpers.limit_runs import (bound_excess, mannequin_run, mannequin_start,
+                                set_swing_twist, swing_excess, talos_group_run,
+                                twist_excess)
+
+from stance.models import MANNEQUIN_LIMIT_FILE, build_mannequin
+from stance.robot import Robot
+from stance.swing import load_limit_file, swing_twist
+
+MANNEQUIN_STEPS = 30_000   # per strategy
+TALOS_STEPS = 20_000       # per strategy: 10^5 steps in all
+EPISODE_STEPS = 100
+SWING_TOLERANCE = math.radians(0.5)
+TOLERANCE = 1e-9
+
+
+def excesses(models, q) -> np.ndarray:
+    return np.array([[swing_excess(model, q), twist_excess(model, q)] for model in models])
+
+
+def push_outside(robot, models, q, rng) -> None:
+    """One to three swings 0.05-0.3 rad out of their domain (in place)."""
+    for index in rng.choice(len(models), rng.integers(1, 4), replace=False):
+        model = models[index]
+        s, theta = swing_twist(model.rotation(q))
+        boundary = model.domain.closest_boundary_point(s)
+        s = boundary + rng.uniform(0.05, 0.3) * model.domain.normal_at(boundary)
+        set_swing_twist(robot, q, model.joint, s, theta)
+
+
+@pytest.mark.parametrize("strategy", ["clamping", "progressive"])
+def test_mannequin_swings_hold_over_random_steps(strategy):
+    robot = build_mannequin()
+    models = load_limit_file(MANNEQUIN_LIMIT_FILE, robot)
+    for seed in range(MANNEQUIN_STEPS // EPISODE_STEPS):
+        rng = np.random.default_rng(seed)
+        start = mannequin_start(robot, models, rng)
+        if rng.random() < 0.3:
+            push_outside(robot, models, start, rng)
+        excess = excesses(models, start)
+        allowed = np.maximum(excess, [SWING_TOLERANCE, TOLERANCE])
+        for q, _ in mannequin_run(robot, models, start, seed, rng.random() < 0.5, strategy,
+                                  EPISODE_STEPS):
+            following = excesses(models, q)
+            assert np.all(following <= allowed + TOLERANCE), \
+                f"seed {seed}: {models[int(np.argmax(following.max(axis=1)))].joint}"
+            allowed = np.maximum(np.minimum(allowed, following),
+                                 [SWING_TOLERANCE, TOLERANCE])
+
+
+@pytest.mark.parametrize("strategy", ["clamping", "progressive"])
+def test_talos_groups_hold_over_random_steps(strategy):
+    robot = Robot.load("talos")
+    groups = load_limit_file("talos", robot)
+    for seed in range(TALOS_STEPS // EPISODE_STEPS):
+        for q, _ in talos_group_run(robot, groups, seed, seed % 3 != 0, strategy,
+                                    EPISODE_STEPS):
+            for model in groups:
+                assert swing_excess(model, q) <= SWING_TOLERANCE, (seed, model.name)
+                assert twist_excess(model, q) <= TOLERANCE, (seed, model.name)
+                assert bound_excess(model, q) <= TOLERANCE, (seed, model.name)
