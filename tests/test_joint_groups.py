@@ -136,3 +136,14 @@ def test_the_cones_bind_and_without_a_strategy_are_left(talos, groups):
 
     assert -SWING_TOLERANCE <= closest("progressive", 40) < groups[0].thickness
     assert closest("none", 80) < -5 * SWING_TOLERANCE
+
+
+def test_gpm_still_attracts_grouped_joints_to_mid_range(talos, groups):
+    """The groups take their joints from the revolute model, not from GPM's criterion."""
+    solver = PIKSolver(talos, strategy="gpm", limit_models=groups)
+    q = talos.initial_configuration()
+    [level] = solver.strategy.extra_levels(solver, q)
+    moved = np.flatnonzero(np.abs(level.jacobian).sum(axis=0))
+    grouped = [talos.model.joints[talos.joint_id(joint)].idx_v
+               for model in groups for joint in model.dof_names]
+    assert set(grouped) <= set(moved) and len(moved) == len(talos.limited_v_index)

@@ -164,14 +164,15 @@ class GradientProjection(NoLimits):
         self.gain = gain
 
     def extra_levels(self, solver, q) -> list:
-        limits = solver.limits
-        count = len(limits.v_index)
+        robot = solver.robot  # every limited 1-DoF joint, also those in joint groups
+        count = len(robot.limited_v_index)
         if count == 0:
             return []
-        span = limits.upper - limits.lower
-        gradient = (q[limits.q_index] - 0.5 * (limits.upper + limits.lower)) / (count * span**2)
-        selection = np.zeros((count, solver.robot.model.nv))
-        selection[np.arange(count), limits.v_index] = 1.0
+        span = robot.upper - robot.lower
+        gradient = (q[robot.limited_q_index] - 0.5 * (robot.upper + robot.lower)) / (
+            count * span**2)
+        selection = np.zeros((count, robot.model.nv))
+        selection[np.arange(count), robot.limited_v_index] = 1.0
         return [Level(jacobian=selection, target=-self.gain * gradient)]
 
 
