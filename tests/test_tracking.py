@@ -11,7 +11,7 @@ import yaml
 
 from stance.execution.interpolation import TransitionPlanner
 from stance.execution.timing import time_optimal_trajectory
-from stance.execution.tracking import task_targets, track, transition_tasks
+from stance.execution.tracking import GAINS, task_targets, track, transition_tasks
 from stance.pik import PIKSolver
 from stance.planning.collision import CollisionModel
 from stance.planning.contacts import load_plan
@@ -48,8 +48,7 @@ def test_held_contacts_lead_the_stack_and_their_targets_are_met_at_the_witness(c
     robot, scene, plan, planner, _ = chair
     model, data = robot.model, pin.Data(robot.model)
     for index in range(len(plan.stances) - 1):
-        stack, held = transition_tasks(scene, planner, plan, index,
-                                       {"contact": 0.5, "com": 0.5, "posture": 0.3})
+        stack, held = transition_tasks(scene, planner, plan, index, GAINS)
         moving = planner.moving_paths(plan.stances[index], plan.stances[index + 1])
         assert {spec.name for spec in stack if spec.priority == 0} == set(held)
         assert set(held).isdisjoint(moving) and set(moving) <= {

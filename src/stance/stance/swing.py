@@ -565,13 +565,10 @@ class JointGroupLimit(SwingTwistRule):
             reached = self.angles_for(target, angles, movable)
             variation[movable] = reached[movable] - angles[movable]
             h[movable], altered[movable] = max(swing_h, twist_h), True
-        following = angles + variation
-        if np.any(following > self.bounds.upper_threshold) or \
-                np.any(following < self.bounds.lower_threshold):
-            own = self.bounds.decide(angles, variation, movable, progressive)
-            variation[own.index] = own.dq
-            h[own.index] = np.maximum(h[own.index], own.h)
-            altered[own.index] = True
+        own = self.bounds.decide(angles, variation, movable, progressive)
+        variation[own.index] = own.dq
+        h[own.index] = np.maximum(h[own.index], own.h)
+        altered[own.index] = True
         fixed = np.flatnonzero(altered)
         if not len(fixed):
             return _nothing()
