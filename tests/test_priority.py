@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from helpers.problems import hierarchy_problems, residual
-from stance.hierarchy import DampedHierarchy, Level
+from stance.hierarchy import DampedHierarchy, Level, stack_levels
 from stance.pik import PIKSolver, _largest_fraction, default_stack_specs
 from stance.robot import Robot
 from stance.stack import TaskSpec
@@ -59,6 +59,37 @@ def test_level_steps_add_up_to_dq_and_leave_higher_levels_alone(problem):
         for higher in levels[:index]:
             scale = 1.0 + np.linalg.norm(higher.jacobian) * np.linalg.norm(level_step)
             assert np.linalg.norm(higher.jacobian @ level_step) < PRIORITY_TOLERANCE * scale
+
+
+@PROPERTY
+@given(hierarchy_problems(), st.integers(0, 4), st.booleans())
+def test_re_solving_with_more_fixed_joints_matches_a_fresh_solve(problem, untouched,
+                                                                 same_values):
+    """The clamping loop's re-solve restarts at the first level involving a newly fixed
+    joint (the first `untouched` levels ignore them); it must give the fresh solution. If
+    an earlier fixed variation changed, the restart state is not used."""
+    levels, nv, fixed_index, fixed_dq, rng = problem
+    free = np.setdiff1d(np.arange(nv), fixed_index)
+    added = free[rng.random(len(free)) < 0.5]
+    for level in levels[:untouched]:
+        level.jacobian[:, added] = 0.0
+    stacked = stack_levels(levels, nv)
+    hierarchy = DampedHierarchy(damping=DAMPING)
+    earlier = hierarchy.solve_stacked(*stacked, fixed_index, fixed_dq)
+    index = np.concatenate([fixed_index, added])
+    values = np.concatenate([fixed_dq if same_values else fixed_dq + 1.0,
+                             rng.normal(size=len(added))])
+    restarted = hierarchy.solve_stacked(*stacked, index, values, previous=earlier)
+    fresh = hierarchy.solve_stacked(*stacked, index, values)
+    assert earlier.restart is None  # given up to the new solution
+    assert np.array_equal(restarted.dq[index], values)
+    scale = 1.0 + np.abs(fresh.dq).max()
+    np.testing.assert_allclose(restarted.dq, fresh.dq, rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(restarted.level_steps, fresh.level_steps, rtol=0,
+                               atol=1e-8 * scale)
+    np.testing.assert_allclose(restarted.step_residuals, fresh.step_residuals, rtol=0,
+                               atol=1e-8 * scale)
+    assert np.all(restarted.level_steps[:, index] == 0.0)
 
 
 @PROPERTY

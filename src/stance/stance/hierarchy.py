@@ -12,8 +12,16 @@ Per level, with P = J Z (m x k) and r the level's residual:
   - the next basis Z' = Z Q2, Q2 spanning null(P), from a column-pivoted Householder QR of
     P^T whose reflections are applied to Z directly; rank = pivots above rank_tolerance.
 
+Re-solving after more joints are fixed (the clamping loop) restarts at the highest level
+whose rows involve a newly fixed joint: a level whose Jacobian columns of those joints are
+zero neither sees their variations nor loses freedom to them (the nullspace above still
+contains their axes, and removing an axis from the basis leaves J Z Z^T J^T and Z Z^T J^T
+unchanged), so its share of dq is the same. The restart removes the new joints' axes from
+that level's stored basis and solves the levels from there on.
+
 The level loop is compiled with numba (cached on disk): at nv ~ 40, interpreter and LAPACK
-call overheads, not arithmetic, would otherwise dominate.
+call overheads, not arithmetic, would otherwise dominate. Products with a level's rows skip
+their zero entries (a foot moves with 12 of Talos' 38 DoFs, a posture row with one).
 """
 
 from __future__ import annotations
@@ -22,6 +30,11 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
+
+
+# Let LLVM reorder sums (vectorized dot products); unlike full fastmath, NaN and infinity
+# keep their meaning. Results stay bitwise deterministic for a given input and machine.
+REORDERING = {"reassoc", "contract", "nsz"}
 
 
 @dataclass
@@ -39,6 +52,20 @@ class HierarchySolution:
     binding: list = field(default_factory=list)  # binding bounds, e.g. "<joint> upper"
     level_steps: np.ndarray | None = None  # levels x nv: each level's share of dq (the
     #                                        fixed variations are the rest), if known
+    restart: _RestartState | None = None  # what a re-solve with more fixed joints reuses
+
+
+@dataclass
+class _RestartState:
+    """Per level of one solution: the nullspace basis (nv x rank) and dq it started from."""
+
+    jacobian: np.ndarray          # the stacked problem solved (identity checked on restart)
+    target: np.ndarray
+    fixed: np.ndarray             # bool (nv): fixed joints of that solution
+    fixed_dq: np.ndarray          # (nv): their variations, 0 elsewhere
+    level_bases: np.ndarray       # levels x nv x nv, level i's basis in [i, :, :ranks[i]]
+    level_ranks: np.ndarray       # levels
+    level_starts: np.ndarray      # (levels + 1) x nv: dq before each level, then the final dq
 
 
 class DampedHierarchy:
@@ -60,17 +87,45 @@ class DampedHierarchy:
     uses_bounds = False  # inequality bounds on dq are the QP hierarchy's business
 
     def solve_stacked(self, jacobian, target, offsets, fixed_index=(), fixed_dq=(),
-                      bounds=None):
-        """Same as solve() on levels already stacked by stack_levels()."""
+                      bounds=None, previous=None):
+        """Same as solve() on levels already stacked by stack_levels().
+
+        previous: a solution of this same stacked problem (same arrays, unchanged) whose
+        fixed joints are among these with the same variations; the solve then restarts at
+        the highest level involving a newly fixed joint (module docstring). `previous`
+        gives its restart state up to the new solution.
+        """
         nv = jacobian.shape[1]
-        free = np.ones(nv, dtype=np.bool_)
-        start = np.zeros(nv)
+        fixed = np.zeros(nv, dtype=np.bool_)
+        values = np.zeros(nv)
         if len(fixed_index):
-            free[fixed_index] = False
-            start[fixed_index] = fixed_dq
-        dq, residuals, level_steps = _solve_levels(jacobian, target, offsets, free, start,
-                                                   self.damping, self.rank_tolerance)
-        return HierarchySolution(dq=dq, step_residuals=residuals, level_steps=level_steps)
+            fixed[fixed_index] = True
+            values[fixed_index] = fixed_dq
+        level_count = len(offsets) - 1
+        state = getattr(previous, "restart", None)
+        first = -1
+        if state is not None and state.jacobian is jacobian and state.target is target:
+            previous.restart = None
+            level_steps = previous.level_steps
+            residuals = previous.step_residuals.copy()
+            first, dq, basis = _restart_point(jacobian, offsets, state.fixed, state.fixed_dq,
+                                              fixed, values, state.level_bases,
+                                              state.level_ranks, state.level_starts,
+                                              level_steps, self.rank_tolerance)
+            state.fixed, state.fixed_dq = fixed, values
+        if first < 0:  # a fresh solve
+            state = _RestartState(jacobian, target, fixed, values,
+                                  np.empty((level_count, nv, nv)),
+                                  np.zeros(level_count, dtype=np.int64),
+                                  np.empty((level_count + 1, nv)))
+            first, dq, basis = 0, values.copy(), _free_axes(fixed)
+            level_steps = np.zeros((level_count, nv))
+            residuals = np.zeros(level_count)
+        dq = _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps,
+                           residuals, state.level_bases, state.level_ranks,
+                           state.level_starts, self.damping, self.rank_tolerance)
+        return HierarchySolution(dq=dq, step_residuals=residuals, level_steps=level_steps,
+                                 restart=state)
 
 
 def stack_levels(levels, nv: int):
@@ -86,35 +141,99 @@ def stack_levels(levels, nv: int):
 
 
 @numba.njit(cache=True)
-def _solve_levels(jacobian, target, offsets, free, start, damping, rank_tolerance):
-    nv = jacobian.shape[1]
-    dq = start.copy()
-    basis = np.zeros((nv, int(free.sum())))
+def _free_axes(fixed):
+    """nv x (free joints) basis of the free joints' axes."""
+    basis = np.zeros((len(fixed), len(fixed) - int(fixed.sum())))
     column = 0
-    for joint in range(nv):
-        if free[joint]:
+    for joint in range(len(fixed)):
+        if not fixed[joint]:
             basis[joint, column] = 1.0
             column += 1
+    return basis
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _restart_point(jacobian, offsets, old_fixed, old_values, fixed, values, level_bases,
+                   level_ranks, level_starts, level_steps, tolerance):
+    """(first level to solve again, dq and basis to start it from) after fixing more joints,
+    from the state of a solution with old_fixed (its level_steps updated in place); first
+    is -1 when that solution's fixed joints are not all among these at the same values."""
+    nv = len(fixed)
+    added = np.zeros(nv, dtype=np.bool_)
+    for joint in range(nv):
+        if old_fixed[joint] and (not fixed[joint] or values[joint] != old_values[joint]):
+            return -1, values, np.zeros((nv, 0))
+        added[joint] = fixed[joint] and not old_fixed[joint]
+    axes = np.flatnonzero(added)
     level_count = len(offsets) - 1
-    residuals = np.zeros(level_count)
-    level_steps = np.zeros((level_count, nv))
+    first = level_count
+    for row in range(offsets[level_count]):
+        if first < level_count:
+            break
+        for joint in axes:
+            if jacobian[row, joint] != 0.0:
+                first = np.searchsorted(offsets, row, side="right") - 1
+                break
+    dq = level_starts[first].copy()
+    for joint in axes:
+        dq[joint] = values[joint]
+        for level in range(first):
+            level_steps[level, joint] = 0.0  # zero but for rounding: those rows ignore it
+    if first == level_count:
+        return first, dq, np.zeros((nv, 0))
+    basis = np.ascontiguousarray(level_bases[first, :, :level_ranks[first]])
+    selected = np.zeros((len(axes), basis.shape[1]))
+    for index in range(len(axes)):
+        selected[index] = basis[axes[index]]
+    basis = _nullspace_update(selected, basis, tolerance)
+    for joint in axes:
+        basis[joint] = 0.0
+    return first, dq, basis
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
+                  level_bases, level_ranks, level_starts, damping, rank_tolerance):
+    """Solve levels first, first + 1, ... from dq and the nullspace basis left by the levels
+    above; fill their level_steps and residuals, and per level the basis and dq it started
+    from (all in place). Returns the final dq."""
+    level_count = len(offsets) - 1
     damping_sq = damping * damping
-    for level in range(level_count):
+    for level in range(first, level_count):
+        rank = basis.shape[1]
+        level_bases[level, :, :rank] = basis
+        level_ranks[level] = rank
+        level_starts[level] = dq
         rows = jacobian[offsets[level]:offsets[level + 1]]
         wanted = target[offsets[level]:offsets[level + 1]]
-        residual = wanted - rows @ dq
-        if basis.shape[1] > 0 and rows.shape[0] > 0:
-            projected = rows @ basis
-            level_steps[level] = basis @ _damped_least_squares(projected, residual, damping_sq)
+        level_steps[level] = 0.0
+        if rank > 0 and rows.shape[0] > 0:
+            projected = _sparse_rows_product(rows, basis)
+            level_steps[level] = basis @ _damped_least_squares(
+                projected, wanted - rows @ dq, damping_sq)
             dq += level_steps[level]
             if level < level_count - 1:
                 basis = _nullspace_update(projected, basis, rank_tolerance)
-            residual = wanted - rows @ dq
+        residual = wanted - rows @ dq
         residuals[level] = np.sqrt(residual @ residual)
-    return dq, residuals, level_steps
+    level_starts[level_count] = dq
+    return dq
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=REORDERING)
+def _sparse_rows_product(rows, matrix):
+    """rows @ matrix, skipping the zero entries of rows."""
+    product = np.zeros((rows.shape[0], matrix.shape[1]))
+    for i in range(rows.shape[0]):
+        for c in range(rows.shape[1]):
+            value = rows[i, c]
+            if value != 0.0:
+                for j in range(matrix.shape[1]):
+                    product[i, j] += value * matrix[c, j]
+    return product
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
 def _spd_solve(gram, rhs):
     """x with gram x = rhs, gram symmetric positive definite (Cholesky, small sizes)."""
     n = gram.shape[0]
@@ -141,7 +260,8 @@ def _spd_solve(gram, rhs):
         x[i] = acc / low[i, i]
     return x
 
-@numba.njit(cache=True)
+
+@numba.njit(cache=True, fastmath=REORDERING)
 def _damped_least_squares(projected, residual, damping_sq):
     """argmin |P y - r|^2 + lambda^2 |y|^2 through the smaller Gram matrix of P."""
     rows, cols = projected.shape
@@ -155,7 +275,8 @@ def _damped_least_squares(projected, residual, damping_sq):
         gram[i, i] += damping_sq
     return _spd_solve(gram, projected.T @ residual)
 
-@numba.njit(cache=True)
+
+@numba.njit(cache=True, fastmath=REORDERING)
 def _nullspace_update(projected, basis, tolerance):
     """basis @ Q2, Q2 an orthonormal basis of null(projected): column-pivoted Householder
     QR of projected^T (pivots <= tolerance end the rank), reflections applied to basis."""

@@ -29,7 +29,7 @@ import pinocchio as pin
 from .hierarchy import DampedHierarchy
 from .limits import RevoluteLimits, make_strategy
 from .stack import StackError, parse_stack_yaml, validate_stack
-from .tasks import ComTask, make_task
+from .tasks import ComTask, capped_steps, make_task
 
 
 @dataclass
@@ -65,6 +65,9 @@ class _Layout:
     offsets: np.ndarray         # level row offsets (levels + 1)
     task_starts: np.ndarray     # first row of each task
     row_scale: np.ndarray       # sqrt(weight) per row
+    row_gain: np.ndarray        # task gain per row
+    row_group: np.ndarray       # step cap group per row (Task.step_caps)
+    group_cap: np.ndarray       # norm cap per group (task units per step)
 
 
 class PIKSolver:
@@ -166,10 +169,13 @@ class PIKSolver:
         fixed_dq = np.zeros(nv)
         h = np.zeros(nv)
         iterations = 0
+        solution = None
         while True:
             index = np.flatnonzero(fixed)
+            restart = {} if getattr(solution, "restart", None) is None else \
+                {"previous": solution}  # re-solve only the levels the new fixes touch
             solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
-                                                    fixed_dq[index], bounds=bounds)
+                                                    fixed_dq[index], bounds=bounds, **restart)
             iterations += 1
             changed = False
             for model in self.limit_models:
@@ -210,6 +216,7 @@ class PIKSolver:
         enabled = sorted((task for task in self.tasks.values() if task.enabled),
                          key=lambda task: task.priority)
         placed, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
+        gains, groups, caps = [], [], []
         row = 0
         for task in enabled:
             if not priorities or priorities[-1] != task.priority:
@@ -222,6 +229,12 @@ class PIKSolver:
             placed.append((task, slice(row, row + task.dimension), scale))
             starts.append(row)
             scales.extend([scale] * task.dimension)
+            gains.extend([task.gain] * task.dimension)
+            task_groups = np.zeros(task.dimension, dtype=np.int64)
+            for positions, cap in task.step_caps():
+                task_groups[positions] = len(caps)
+                caps.append(cap)
+            groups.extend(task_groups)
             row += task.dimension
         if priorities:
             offsets.append(row)
@@ -229,16 +242,20 @@ class PIKSolver:
         self._target = np.zeros(row)
         self._error = np.zeros(row)
         return _Layout(placed, priorities, level_tasks, np.array(offsets, dtype=np.int64),
-                       np.array(starts, dtype=np.int64), np.array(scales))
+                       np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
+                       np.array(groups, dtype=np.int64), np.array(caps))
 
     def _fill_levels(self, q):
-        """Write every enabled task's scaled rows into the stacked Jacobian and target."""
+        """Write every enabled task's rows into the stacked Jacobian, error and target
+        (Jacobian and target rows scaled by sqrt(weight))."""
         jacobian, target, error = self._jacobian, self._target, self._error
-        for task, rows, scale in self._layout.tasks:
-            task_jacobian, task_error = task.jacobian_and_error(self.robot, q)
-            jacobian[rows] = scale * task_jacobian
-            target[rows] = scale * task.step(task_error)
-            error[rows] = task_error
+        layout = self._layout
+        for task, rows, scale in layout.tasks:
+            task.write(self.robot, q, jacobian[rows], error[rows])
+            if scale != 1.0:
+                jacobian[rows] *= scale
+        capped_steps(error, layout.row_gain, layout.row_group, layout.group_cap,
+                     layout.row_scale, target)
         return jacobian, target, error
 
     def _reports(self, q, error, step_residuals):

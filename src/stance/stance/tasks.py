@@ -3,13 +3,15 @@ Jacobian J (rows x nv) and an error e (rows), both restricted to its selected ax
 
 Frames: errors and Jacobians are expressed in the world-aligned frame at the task frame's
 origin (Pinocchio LOCAL_WORLD_ALIGNED): rows x, y, z in meters, rx, ry, rz in radians.
-The solver asks for J dq = step(e): the error scaled by the gain, capped in norm.
+The solver asks for J dq = step(e): the error scaled by the gain, capped in norm per row
+group (a task's `step_caps`; `capped_steps` applies them to a whole stack at once).
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import pinocchio as pin
 
@@ -38,9 +40,25 @@ def pose_from_position_quaternion(position, quaternion_xyzw, tolerance: float = 
     return pin.SE3(pin.Quaternion(w, x, y, z).toRotationMatrix(), position)
 
 
+@numba.njit(cache=True)
+def capped_steps(error, gain, group, cap, scale, out):
+    """out = scale * step, step = gain * error with each row group's part capped in norm
+    at cap[group] (per row: gain, group, scale; task units)."""
+    squares = np.zeros(len(cap))
+    for row in range(len(error)):
+        out[row] = gain[row] * error[row]
+        squares[group[row]] += out[row] * out[row]
+    for row in range(len(error)):
+        norm = math.sqrt(squares[group[row]])
+        if norm > cap[group[row]]:
+            out[row] *= cap[group[row]] / norm
+        out[row] *= scale[row]
+    return out
+
+
 class Task:
     """Base class. Subclasses set `self.rows` (selected row indices) and implement
-    `jacobian_and_error(robot, q)` on kinematics already computed in robot.data."""
+    `write(robot, q, jacobian, error)` on kinematics already computed in robot.data."""
 
     max_step = 0.05  # norm cap of one step's task correction, task units
 
@@ -56,18 +74,23 @@ class Task:
     def dimension(self) -> int:
         return len(self.rows)
 
-    def step(self, error: np.ndarray) -> np.ndarray:
-        """Desired task variation for one IK step: gain * error, norm capped at max_step."""
-        step = self.gain * error
-        norm = math.sqrt(step @ step)
-        return step * (self.max_step / norm) if norm > self.max_step else step
+    def step_caps(self) -> list:
+        """(row positions, cap) per group of rows whose step norm is capped together."""
+        return [(np.arange(self.dimension), self.max_step)]
 
     def hold(self, robot, q) -> None:
         """Set the target to the current value (kinematics of q already in robot.data)."""
         raise NotImplementedError
 
-    def jacobian_and_error(self, robot, q):
+    def write(self, robot, q, jacobian: np.ndarray, error: np.ndarray) -> None:
+        """Write J (rows x nv) and e (rows) into the given arrays."""
         raise NotImplementedError
+
+    def jacobian_and_error(self, robot, q):
+        jacobian = np.empty((self.dimension, robot.model.nv))
+        error = np.empty(self.dimension)
+        self.write(robot, q, jacobian, error)
+        return jacobian, error
 
     def current_pose(self, robot):
         """Achieved value as SE3 for status (CoM: translation only); None if not a pose."""
@@ -111,33 +134,33 @@ class FrameTask(Task):
         require_finite(pose.homogeneous, f"target of task {self.name!r}")
         self.target = pose
 
-    def full_error(self, robot) -> np.ndarray:
-        """6-D error [p_target - p; log3(R_target R^T)], world-aligned (m, rad)."""
+    def full_error(self, robot, out=None) -> np.ndarray:
+        """6-D error [p_target - p; log3(R_target R^T)], world-aligned (m, rad); rotation
+        rows 0 when no axis is selected. Written into `out` (6) if given."""
         current = robot.data.oMf[self.frame_id]
-        error = np.zeros(6)
-        error[:3] = self._target_translation - current.translation
+        error = np.empty(6) if out is None else out
+        np.subtract(self._target_translation, current.translation, out=error[:3])
         if self._needs_rotation:
             error[3:] = pin.log3(self._target_rotation @ current.rotation.T)
+        else:
+            error[3:] = 0.0
         return error
 
-    def jacobian_and_error(self, robot, q):
-        jacobian = pin.getFrameJacobian(robot.model, robot.data, self.frame_id,
-                                        pin.LOCAL_WORLD_ALIGNED)
-        error = self.full_error(robot)
+    def write(self, robot, q, jacobian, error) -> None:
+        frame_jacobian = pin.getFrameJacobian(robot.model, robot.data, self.frame_id,
+                                              pin.LOCAL_WORLD_ALIGNED)
         if self._all_rows:
-            return jacobian, error
-        return jacobian[self.rows], error[self.rows]
+            jacobian[:] = frame_jacobian
+            self.full_error(robot, error)
+        else:
+            jacobian[:] = frame_jacobian[self.rows]
+            error[:] = self.full_error(robot)[self.rows]
 
-    def step(self, error: np.ndarray) -> np.ndarray:
-        """Cap translation and rotation rows separately (m and rad per step)."""
-        step = self.gain * error
-        for group, cap in ((self._linear, self.max_linear_step),
-                           (self._angular, self.max_angular_step)):
-            part = step[group]
-            norm = math.sqrt(part @ part)
-            if norm > cap:
-                step[group] = part * (cap / norm)
-        return step
+    def step_caps(self) -> list:
+        """Translation and rotation rows capped separately (m and rad per step)."""
+        return [(group, cap) for group, cap in ((self._linear, self.max_linear_step),
+                                                (self._angular, self.max_angular_step))
+                if len(group)]
 
     def current_pose(self, robot):
         return robot.data.oMf[self.frame_id].copy()
@@ -177,9 +200,9 @@ class ComTask(Task):
             raise TargetError(f"CoM target must have 3 values, got {position.shape}")
         self.target = position.copy()
 
-    def jacobian_and_error(self, robot, q):
-        error = self.target - robot.data.com[0]
-        return robot.data.Jcom[self.rows], error[self.rows]
+    def write(self, robot, q, jacobian, error) -> None:
+        jacobian[:] = robot.data.Jcom[self.rows]
+        error[:] = (self.target - robot.data.com[0])[self.rows]
 
     def current_pose(self, robot):
         return pin.SE3(np.eye(3), robot.data.com[0].copy())
@@ -215,9 +238,9 @@ class PostureTask(Task):
             target[joint_model.idx_q] = float(require_finite(value, f"position of {joint!r}"))
         self.target = target
 
-    def jacobian_and_error(self, robot, q):
-        error = pin.difference(robot.model, q, self.target)[robot.base_nv:]
-        return self._jacobian, error
+    def write(self, robot, q, jacobian, error) -> None:
+        jacobian[:] = self._jacobian
+        error[:] = pin.difference(robot.model, q, self.target)[robot.base_nv:]
 
 
 TASK_CLASSES = {
