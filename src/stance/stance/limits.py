@@ -50,31 +50,36 @@ NEGLIGIBLE_VARIATION = 1e-12  # rad: below this a joint variation is not worth a
 
 
 @numba.njit(cache=True)
-def _progressive_decision(q, dq, lower, upper, lower_threshold, upper_threshold,
-                          thickness, free, progressive):
-    """Per joint: (must fix, fixed variation, h). Equations 2-5, then the clamping check;
-    with progressive False only the clamping check (h in {0, 1})."""
-    count = len(q)
-    fix = np.zeros(count, dtype=np.bool_)
+def _progressive_decision(configuration, variation, free, q_index, v_index, lower, upper,
+                          lower_threshold, upper_threshold, thickness, progressive):
+    """(v indices to fix, their fixed variations, h) among the joints at q_index / v_index
+    of the full configuration (nq), variation (nv) and free mask (nv). Equations 2-5, then
+    the clamping check; with progressive False only the clamping check (h in {0, 1})."""
+    count = len(q_index)
+    index = np.zeros(count, dtype=np.int64)
     varied = np.zeros(count)
     h = np.zeros(count)
+    fixed = 0
     for j in range(count):
-        if not free[j] or abs(dq[j]) <= NEGLIGIBLE_VARIATION:
+        q, dq = configuration[q_index[j]], variation[v_index[j]]
+        if not free[v_index[j]] or abs(dq) <= NEGLIGIBLE_VARIATION:
             continue
-        q_next = q[j] + dq[j]
+        q_next = q + dq
+        damping, fixed_dq = 0.0, 0.0
         if q_next > upper[j]:
-            fix[j], varied[j], h[j] = True, upper[j] - q[j], 1.0
+            damping, fixed_dq = 1.0, upper[j] - q
         elif q_next < lower[j]:
-            fix[j], varied[j], h[j] = True, lower[j] - q[j], 1.0
+            damping, fixed_dq = 1.0, lower[j] - q
         elif progressive:
-            damping = 0.0
-            if q_next > q[j] and q[j] > upper_threshold[j]:
-                damping = cubic_step((q[j] - upper_threshold[j]) / thickness[j])
-            elif q_next < q[j] and q[j] < lower_threshold[j]:
-                damping = cubic_step((lower_threshold[j] - q[j]) / thickness[j])
-            if damping > 0.0:
-                fix[j], varied[j], h[j] = True, (1.0 - damping) * dq[j], damping
-    return fix, varied, h
+            if q_next > q and q > upper_threshold[j]:
+                damping = cubic_step((q - upper_threshold[j]) / thickness[j])
+            elif q_next < q and q < lower_threshold[j]:
+                damping = cubic_step((lower_threshold[j] - q) / thickness[j])
+            fixed_dq = (1.0 - damping) * dq
+        if damping > 0.0:
+            index[fixed], varied[fixed], h[fixed] = v_index[j], fixed_dq, damping
+            fixed += 1
+    return index[:fixed], varied[:fixed], h[:fixed]
 
 
 class RevoluteLimits:
@@ -115,11 +120,9 @@ class RevoluteLimits:
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
-        fix, varied, h = _progressive_decision(
-            q[self.q_index], dq[self.v_index], self.lower, self.upper, self.lower_threshold,
-            self.upper_threshold, self.thickness, free[self.v_index], progressive)
-        index = np.flatnonzero(fix)
-        return LimitDecision(self.v_index[index], varied[index], h[index])
+        return LimitDecision(*_progressive_decision(
+            q, dq, free, self.q_index, self.v_index, self.lower, self.upper,
+            self.lower_threshold, self.upper_threshold, self.thickness, progressive))
 
 
 class Strategy:

@@ -56,6 +56,46 @@ def capped_steps(error, gain, group, cap, scale, out):
     return out
 
 
+NEAR_ZERO_ANGLE = 1e-4   # rad: below it, theta / (2 sin theta) by its Taylor series
+NEAR_PI_MARGIN = 1e-2    # rad: within it of pi, the axis from the symmetric part of R
+
+
+@numba.njit(cache=True)
+def frame_error(target_translation, target_rotation, translation, rotation, out):
+    """out = [p_target - p; log3(R_target R^T)] (m, rad), the rotation vector as
+    pinocchio.log3 gives it (norm in [0, pi]); compiled, as a frame task's error is needed
+    at every IK step (tests compare it with Pinocchio)."""
+    for i in range(3):
+        out[i] = target_translation[i] - translation[i]
+    r = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            r[i, j] = (target_rotation[i, 0] * rotation[j, 0]
+                       + target_rotation[i, 1] * rotation[j, 1]
+                       + target_rotation[i, 2] * rotation[j, 2])
+    vee = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    cosine = min(max(0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0), -1.0), 1.0)
+    angle = math.atan2(0.5 * math.sqrt(vee @ vee), cosine)  # |vee| = 2 sin(angle)
+    if angle < NEAR_ZERO_ANGLE:
+        out[3:] = (0.5 + angle * angle / 12.0) * vee
+    elif angle < math.pi - NEAR_PI_MARGIN:
+        out[3:] = angle / (2.0 * math.sin(angle)) * vee
+    else:  # R = cos I + sin [a]x + (1 - cos) a a^T: axis from the diagonal and symmetric part
+        k = 0
+        for i in range(1, 3):
+            if r[i, i] > r[k, k]:
+                k = i
+        axis = np.zeros(3)
+        axis[k] = math.sqrt(max(0.0, (r[k, k] - cosine) / (1.0 - cosine)))
+        if vee[k] < 0.0:
+            axis[k] = -axis[k]
+        for i in range(3):
+            if i != k:
+                axis[i] = (r[i, k] + r[k, i]) / (2.0 * (1.0 - cosine) * axis[k])
+        out[3:] = angle / math.sqrt(axis @ axis) * axis
+    return out
+
+
 class Task:
     """Base class. Subclasses set `self.rows` (selected row indices) and implement
     `write(robot, q, jacobian, error)` on kinematics already computed in robot.data."""
@@ -139,10 +179,9 @@ class FrameTask(Task):
         rows 0 when no axis is selected. Written into `out` (6) if given."""
         current = robot.data.oMf[self.frame_id]
         error = np.empty(6) if out is None else out
-        np.subtract(self._target_translation, current.translation, out=error[:3])
-        if self._needs_rotation:
-            error[3:] = pin.log3(self._target_rotation @ current.rotation.T)
-        else:
+        frame_error(self._target_translation, self._target_rotation, current.translation,
+                    current.rotation, error)
+        if not self._needs_rotation:
             error[3:] = 0.0
         return error
 
