@@ -279,17 +279,27 @@ def _damped_least_squares(projected, residual, damping_sq):
 @numba.njit(cache=True, fastmath=REORDERING)
 def _nullspace_update(projected, basis, tolerance):
     """basis @ Q2, Q2 an orthonormal basis of null(projected): column-pivoted Householder
-    QR of projected^T (pivots <= tolerance end the rank), reflections applied to basis."""
-    a = projected.T.copy()          # k x m
-    k, m = a.shape
-    b = basis.copy()                # nv x k
+    QR of projected^T (pivots <= tolerance end the rank), reflections applied to basis.
+    Basis columns the level does not see (zero columns of projected) are moved last and
+    kept as they are: no reflection involves them."""
+    k, m = projected.shape[1], projected.shape[0]
+    seen = np.zeros(k, dtype=np.bool_)
+    for c in range(k):
+        for r in range(m):
+            if projected[r, c] != 0.0:
+                seen[c] = True
+                break
+    order = np.concatenate((np.flatnonzero(seen), np.flatnonzero(~seen)))
+    involved = int(seen.sum())      # rows of a the reflections work on
+    a = np.ascontiguousarray(projected.T[order])   # k x m
+    b = np.ascontiguousarray(basis[:, order])      # nv x k
     nv = b.shape[0]
     norms = np.zeros(m)
     rank = 0
-    for j in range(min(k, m)):
+    for j in range(min(involved, m)):
         for c in range(j, m):
             acc = 0.0
-            for r in range(j, k):
+            for r in range(j, involved):
                 acc += a[r, c] * a[r, c]
             norms[c] = acc
         pivot = j
@@ -299,14 +309,14 @@ def _nullspace_update(projected, basis, tolerance):
         if np.sqrt(norms[pivot]) <= tolerance:
             break
         if pivot != j:
-            for r in range(k):
+            for r in range(involved):
                 a[r, j], a[r, pivot] = a[r, pivot], a[r, j]
         length = np.sqrt(norms[pivot])
         alpha = -length if a[j, j] >= 0 else length
-        v = a[j:, j].copy()
+        v = a[j:involved, j].copy()
         v[0] -= alpha
         v_sq = 0.0
-        for r in range(k - j):
+        for r in range(involved - j):
             v_sq += v[r] * v[r]
         rank += 1
         if v_sq == 0.0:
@@ -314,16 +324,18 @@ def _nullspace_update(projected, basis, tolerance):
         scale = 2.0 / v_sq
         for c in range(j, m):
             acc = 0.0
-            for r in range(k - j):
+            for r in range(involved - j):
                 acc += v[r] * a[j + r, c]
             acc *= scale
-            for r in range(k - j):
+            for r in range(involved - j):
                 a[j + r, c] -= acc * v[r]
         for row in range(nv):
             acc = 0.0
-            for r in range(k - j):
+            for r in range(involved - j):
                 acc += b[row, j + r] * v[r]
+            if acc == 0.0:
+                continue
             acc *= scale
-            for r in range(k - j):
+            for r in range(involved - j):
                 b[row, j + r] -= acc * v[r]
     return np.ascontiguousarray(b[:, rank:])
