@@ -23,6 +23,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 import pinocchio as pin
 
@@ -260,15 +261,10 @@ class PIKSolver:
 
     def _reports(self, q, error, step_residuals):
         layout = self._layout
-        task_errors = {}
-        if len(error):
-            task_norms = np.sqrt(np.add.reduceat(error * error, layout.task_starts))
-            weighted = error * layout.row_scale
-            level_norms = np.sqrt(np.add.reduceat(weighted * weighted, layout.offsets[:-1]))
-            task_errors = {task.name: float(norm)
-                           for (task, _, _), norm in zip(layout.tasks, task_norms)}
-        else:
-            level_norms = []
+        task_norms, level_norms = _error_norms(error, layout.task_starts, layout.offsets,
+                                               layout.row_scale)
+        task_errors = {task.name: float(norm)
+                       for (task, _, _), norm in zip(layout.tasks, task_norms)}
         levels = [LevelReport(priority, names, float(norm), float(residual))
                   for priority, names, norm, residual in zip(
                       layout.priorities, layout.level_tasks, level_norms, step_residuals)]
@@ -317,6 +313,23 @@ class PIKSolver:
                 return dq + fraction * level_step, fraction
             dq += level_step
         return dq, 1.0
+
+
+@numba.njit(cache=True)
+def _error_norms(error, task_starts, level_offsets, row_scale):
+    """(|e| per task, |sqrt(w) e| per level) of the stacked error (task units)."""
+    task_norms = np.zeros(len(task_starts))
+    level_norms = np.zeros(len(level_offsets) - 1)
+    task = -1
+    for row in range(len(error)):
+        while task + 1 < len(task_starts) and task_starts[task + 1] == row:
+            task += 1
+        task_norms[task] += error[row] * error[row]
+    for level in range(len(level_norms)):
+        for row in range(level_offsets[level], level_offsets[level + 1]):
+            weighted = row_scale[row] * error[row]
+            level_norms[level] += weighted * weighted
+    return np.sqrt(task_norms), np.sqrt(level_norms)
 
 
 def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
