@@ -106,7 +106,7 @@ class DampedHierarchy:
         first = -1
         if state is not None and state.jacobian is jacobian and state.target is target:
             previous.restart = None
-            level_steps = previous.level_steps
+            level_steps = previous.level_steps.copy()
             residuals = previous.step_residuals.copy()
             first, dq, basis = _restart_point(jacobian, offsets, state.fixed, state.fixed_dq,
                                               fixed, values, state.level_bases,
