@@ -1,6 +1,6 @@
-"""Best-first contact planner on the small flat_steps scene: a verified plan, determinism,
-ordered son generation, and every failure reason (bad goal, infeasible start, no path,
-budget, cancel) returned instead of raised or hung."""
+"""Best-first contact planner on the small flat_steps scene (and the shipped gap scene): a
+verified plan, determinism, ordered son generation, and every failure reason (bad goal,
+infeasible start, no path, budget, cancel) returned instead of raised or hung."""
 
 import time
 from dataclasses import replace
@@ -225,3 +225,17 @@ def test_a_sole_is_not_placed_while_its_thigh_holds(chair_search):
     assert search._placeable("left_sole", lifted_thigh)
     assert not search._placeable("right_sole", lifted_thigh)
     assert not search._placeable("right_thigh", lifted_thigh)
+
+
+def test_gap_wall_is_crossed_with_a_hand_on_the_wall(robot):
+    """The shipped gap scene: both soles end on the far slab, the left hand holds the wall
+    on the way, and the plan passes the independent verification."""
+    gap = load_scene("gap_wall", robot)
+    result = plan_contacts(robot, PlanRequest(scene=gap, max_nodes=400, time_budget=300.0))
+    assert result.success, result.message
+    stances = result.plan.stances
+    assert any(contact.spot == "left_hand" for stance in stances for contact in stance.contacts)
+    assert any({(c.spot, c.surface) for c in stance.contacts}
+               >= {("left_sole", "far_slab"), ("right_sole", "far_slab")} for stance in stances)
+    report = verify_plan(result.plan, gap, robot)
+    assert report.ok, report.failures
