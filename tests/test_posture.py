@@ -192,3 +192,14 @@ def test_a_guide_target_yields_to_the_contacts_within_its_tolerance(robot, scene
         achieved = spot_pose(generator, result.q, contact.spot)
         target = contact.spot_target(scene.surfaces[contact.surface])
         assert np.linalg.norm(achieved.translation - target.translation) < 1e-3
+
+
+def test_rows_out_of_one_steps_reach_give_the_step_toward_them():
+    """A row the trust region cannot satisfy in one step (x0 >= 2 with |x| <= 1) is made
+    soft: the step goes as far toward it as the bounds allow instead of failing."""
+    from stance.planning.posture import _solve_daqp
+
+    step = _solve_daqp(np.eye(2), np.array([0.0, 0.3]), np.array([[1.0, 0.0]]),
+                       np.array([2.0]), np.array([np.inf]), -np.ones(2), np.ones(2))
+    assert step is not None
+    np.testing.assert_allclose(step, [1.0, -0.3], atol=1e-9)

@@ -474,10 +474,14 @@ class PostureGenerator:
         return bool(result.feasible), float(result.margin)
 
 
+DAQP_OPTIMAL, DAQP_SOFT_OPTIMAL = 1, 2   # daqp.solve exit flags
+
+
 def _solve_daqp(hessian, gradient, c_matrix, lower, upper, box_lower, box_upper):
     """DAQP (dual active set): bounds first, then the general rows. When the rows cannot
-    all hold (a collision row against the trust region), they are made soft and the QP
-    solved again."""
+    all hold (a collision row against the trust region, a CoM farther outside the new
+    support region than one step can move it), they are made soft and the QP solved again:
+    its answer (flag 2, optimal with soft rows violated) is the step toward them."""
     rows = len(lower)
     upper_all = np.concatenate([box_upper, np.minimum(upper, 1e30)])
     lower_all = np.concatenate([box_lower, np.maximum(lower, -1e30)])
@@ -486,7 +490,7 @@ def _solve_daqp(hessian, gradient, c_matrix, lower, upper, box_lower, box_upper)
     if flag != 1 and rows:
         sense[len(box_upper):] = 8
         x, _, flag, _ = daqp.solve(hessian, gradient, c_matrix, upper_all, lower_all, sense)
-    return np.asarray(x) if flag == 1 else None
+    return np.asarray(x) if flag in (DAQP_OPTIMAL, DAQP_SOFT_OPTIMAL) else None
 
 
 def _solve_proxsuite(hessian, gradient, c_matrix, lower, upper, box_lower, box_upper):
