@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from stance.stack import TaskSpec
-from stance.tasks import capped_steps, frame_error, make_task
+from stance.tasks import capped_steps, frame_error, make_task, step_cap_groups
 
 PROPERTY = settings(max_examples=300, deadline=None, derandomize=True, database=None)
 ANGLES = st.one_of(st.floats(0.0, np.pi), st.floats(0.0, 1e-3), st.floats(np.pi - 2e-2, np.pi),
@@ -38,12 +38,7 @@ def test_frame_error_is_pinocchios_log3(seed, angle):
 def test_frame_task_caps_translation_and_rotation_separately(values, gain):
     task = make_task(TaskSpec("hand", "pose", frame="hand", gain=gain), _FakeRobot())
     error = np.array(values)
-    group = np.zeros(6, dtype=np.int64)
-    caps = []
-    for index, (positions, cap) in enumerate(task.step_caps()):
-        group[positions] = index
-        caps.append(cap)
-    step = capped_steps(error, np.full(6, gain), group, np.array(caps), np.ones(6),
+    step = capped_steps(error, np.full(6, gain), *step_cap_groups([task]), np.ones(6),
                         np.empty(6))
     for part, cap in ((slice(0, 3), task.max_linear_step), (slice(3, 6), task.max_angular_step)):
         wanted = gain * error[part]

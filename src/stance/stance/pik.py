@@ -30,7 +30,7 @@ import pinocchio as pin
 from .hierarchy import DampedHierarchy
 from .limits import RevoluteLimits, make_strategy
 from .stack import StackError, parse_stack_yaml, validate_stack
-from .tasks import ComTask, capped_steps, make_task
+from .tasks import ComTask, capped_steps, make_task, step_cap_groups
 
 
 @dataclass
@@ -217,7 +217,7 @@ class PIKSolver:
         enabled = sorted((task for task in self.tasks.values() if task.enabled),
                          key=lambda task: task.priority)
         placed, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
-        gains, groups, caps = [], [], []
+        gains = []
         row = 0
         for task in enabled:
             if not priorities or priorities[-1] != task.priority:
@@ -231,11 +231,6 @@ class PIKSolver:
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
-            task_groups = np.zeros(task.dimension, dtype=np.int64)
-            for positions, cap in task.step_caps():
-                task_groups[positions] = len(caps)
-                caps.append(cap)
-            groups.extend(task_groups)
             row += task.dimension
         if priorities:
             offsets.append(row)
@@ -244,7 +239,7 @@ class PIKSolver:
         self._error = np.zeros(row)
         return _Layout(placed, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
-                       np.array(groups, dtype=np.int64), np.array(caps))
+                       *step_cap_groups(enabled))
 
     def _fill_levels(self, q):
         """Write every enabled task's rows into the stacked Jacobian, error and target

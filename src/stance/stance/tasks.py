@@ -56,6 +56,18 @@ def capped_steps(error, gain, group, cap, scale, out):
     return out
 
 
+def step_cap_groups(tasks) -> tuple:
+    """(cap group per row, norm cap per group) of the tasks' rows stacked in order."""
+    groups, caps = [], []
+    for task in tasks:
+        task_groups = np.zeros(task.dimension, dtype=np.int64)
+        for positions, cap in task.step_caps():
+            task_groups[positions] = len(caps)
+            caps.append(cap)
+        groups.extend(task_groups)
+    return np.array(groups, dtype=np.int64), np.array(caps, dtype=float)
+
+
 NEAR_ZERO_ANGLE = 1e-4   # rad: below it, theta / (2 sin theta) by its Taylor series
 NEAR_PI_MARGIN = 1e-2    # rad: within it of pi, the axis from the symmetric part of R
 
