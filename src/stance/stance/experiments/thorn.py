@@ -126,7 +126,7 @@ HUMANOIDS = {
                 "hand": "right_hand", "head": "head"},
         knee_dofs=("right_knee", "right_knee_twist"),
         right_leg_dofs=(*_ball("right_hip"), "right_knee", "right_knee_twist",
-                        *_ball("right_ankle")),
+                        *_ball("right_ankle")[:2]),  # the ankle twist is locked: h = 1
         limit_models=mannequin_limits),
 }
 
