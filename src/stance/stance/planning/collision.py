@@ -14,36 +14,35 @@ points p1 on body 1, p2 on body 2 and normal n from body 1 to body 2 (world fram
 d' = n.(v(p2) - v(p1)) with the point velocity v(p) = (J_lin - [p]x J_ang) dq of the body's
 joint WORLD Jacobian, i.e. the row [n, p x n] J.
 
-Near pairs (constraint_rows): every pair has a certified lower bound of its distance from
-the last refresh (the exact hull distance for pairs whose bounding volumes - a sphere about
-each robot geometry, the world AABB of each obstacle - were closer than near + margin, the
-bounding volumes' signed distance otherwise), lowered by how far the two bodies may have
-moved since (|dt| + rotation angle * reach of the geometries about their joint origin). Only
-pairs whose bound is below `near` get an exact distance, so no near pair is missed whatever
-the step. A refresh (full pass: bounds of all pairs, exact distances below near + margin)
-happens on the first call, when `near` grew, or when some body may have moved by more than
-margin / 2 since the last one: then the candidates never outnumber the last refresh's exact
-pairs. min_distance and penetrations use the same bounds to skip far pairs.
+Near pairs (constraint_rows): every pair keeps a certified lower bound of its distance from
+the last call (its exact hull distance if it was computed then, else a bound), lowered by
+how far the pair's two bodies may have moved relative to each other since (|dt| + rotation
+angle * reach of the moving geometries about their joint origin, measured in the other
+body's frame: a self pair's bound survives a motion of the whole robot) and raised to the
+bounding volumes' signed distance (a sphere about each robot geometry, the world AABB of
+each obstacle). Only the non-ignored pairs whose bound is below near + margin get an exact
+distance, so no near pair is missed whatever the step, and a pair far from everything is
+not recomputed at each call. min_distance and penetrations use the same bounds to skip far
+pairs.
 
-Measured costs (Talos with 7 boxes around it: 1251 pairs, about 50 rows at near = 8 cm;
-one BLAS thread; median / p99 over 1000 calls; random q: half_sitting plus N(0, 0.15 rad)
-on every joint; machine shared with other jobs):
-    full pass (refresh) at random q            0.78 ms / 1.29 ms
-    constraint_rows, walk of 5 mrad per joint  0.39 ms / 0.68 ms   (1 refresh in 7 calls)
-    constraint_rows at random q, no refresh    0.45 ms / 0.72 ms
-    min_distance after constraint_rows at q    0.26 ms / 0.32 ms
-    min_distance or penetrations, cold         0.43 ms / 0.73 ms
-One exact hull distance costs 2 to 4 us; about 0.2 ms per call is Python and numpy.
+Measured cost (chair_table scene: Talos, 12 obstacles, 1511 pairs in 333 joint pairs;
+the 6,572 constraint_rows calls of the first 30 nodes of its search replayed, near = 5 cm,
+about 40 rows and 65 exact distances per call; one BLAS thread; mean CPU time per call,
+both versions in one run, machine shared with other jobs): 0.68 ms, against 1.07 ms for
+the earlier policy (a full pass whenever some body had moved by 25 mm, which during a
+posture search was two calls in three). One exact hull distance costs 4 to 5 us; the
+bounds of all pairs cost about 40 us (numba).
 """
 
 from __future__ import annotations
 
+import math
 import os
 
 import coal
+import numba
 import numpy as np
 import pinocchio as pin
-from scipy.spatial.distance import cdist
 
 # Convex hulls by (mesh path, scale): building one costs about 1 ms per mesh.
 _HULLS: dict = {}
@@ -108,12 +107,13 @@ class CollisionModel:
 
     robot: stance.robot.Robot; scene: stance.planning.scene.Scene (its `robot` spec names
     the example-robot-data robot whose meshes and SRDF are used unless package_dirs and
-    srdf_path are given). margin (m): the refresh policy's slack (module docstring).
+    srdf_path are given). margin (m): pairs whose distance bound is below near + margin get
+    an exact distance (module docstring).
     """
 
     def __init__(self, robot, scene, self_collision: bool = True,
                  package_dirs: list | None = None, srdf_path: str | None = None,
-                 margin: float = 0.05):
+                 margin: float = 0.02):
         self.robot, self.scene, self.margin = robot, scene, margin
         model = robot.model
         if not robot.urdf:
@@ -164,9 +164,8 @@ class CollisionModel:
                 joint = model.joints[ancestor]
                 support[joint_id, joint.idx_v:joint.idx_v + joint.nv] = 1.0
         self._support = support
-        self._reference = None      # joint placements (njoints, 4, 4) at the last refresh
-        self._lower = None          # certified distance lower bounds (pairs,) at that refresh
-        self._near = 0.0            # `near` of that refresh (m)
+        self._reference = None      # relative placements of the joint pairs at the last call
+        self._lower = None          # certified distance lower bounds (pairs,) at that call
         self._ignored_key, self._ignored_mask = None, np.zeros(len(self.pairs), dtype=bool)
 
     def _bounds_setup(self, objects, robot_geometries):
@@ -182,19 +181,20 @@ class CollisionModel:
         self._box_extents = np.array([np.abs(g.placement.rotation) @ (0.5 * (box.max_ - box.min_))
                                       for g, box in zip(obstacle_objects, boxes)]).reshape(-1, 3)
         first, second = self.pairs[:, 0], self.pairs[:, 1]
-        self._self_pairs = np.flatnonzero(second < robot_geometries)
-        self._obstacle_pairs = np.flatnonzero(second >= robot_geometries)
-        self_first, self_second = first[self._self_pairs], second[self._self_pairs]
-        self._self_flat = self_first * robot_geometries + self_second
-        self._self_radii = radii[self_first] + radii[self_second]
-        obstacles = len(obstacle_objects)
-        self._obstacle_flat = (first * obstacles + second - robot_geometries)[self._obstacle_pairs]
-        self._obstacle_radii = radii[first[self._obstacle_pairs]]
+        # Per pair: the robot geometry, the other robot geometry or the obstacle (index
+        # among the obstacles), whether it is an obstacle, the spheres' radii summed.
+        self._pair_obstacle = second >= robot_geometries
+        self._pair_other = np.where(self._pair_obstacle, second - robot_geometries, second)
+        self._pair_radius = radii[first].copy()
+        robot_pairs = ~self._pair_obstacle
+        self._pair_radius[robot_pairs] += radii[second[robot_pairs]]
         reach = np.zeros(self.robot.model.njoints)    # farthest geometry point from a joint (m)
         np.maximum.at(reach, self._robot_joints, np.linalg.norm(self._centres, axis=1) + radii)
-        self._reach = reach
-        joints = self.pair_joints
-        self._flat_pair_joints = joints[:, 0] * self.robot.model.njoints + joints[:, 1]
+        # The pairs' distinct (moving joint, frame joint): the first geometry's joint moves
+        # in the second's frame (the universe for obstacles).
+        joint_pairs, pair_to_joint_pair = np.unique(self.pair_joints, axis=0, return_inverse=True)
+        self._joint_pairs, self._pair_to_joint_pair = joint_pairs, pair_to_joint_pair.reshape(-1)
+        self._moving_reach = reach[self._joint_pairs[:, 0]]
 
     def ignored_pairs_for_contacts(self, contacts) -> frozenset:
         """Pair indices between the bodies carrying the contacts' spots and the obstacles
@@ -223,17 +223,12 @@ class CollisionModel:
         "geomA|geomB". Near-pair policy and costs: module docstring.
         """
         pin.computeJointJacobians(self.robot.model, self.data, q)
-        placements = self._place_geometries()
-        stale = self._reference is None or near > self._near
-        if not stale:
-            largest, shrink = self._pair_motion(placements)
-            stale = largest > 0.5 * self.margin
-        if stale:
-            candidates, results, distances = self._refresh(placements, near)
-        else:
-            candidates = np.flatnonzero((self._lower - shrink < near) & ~self._ignored(ignored))
-            results, distances = self._distances(candidates)
-        close = np.flatnonzero((distances < near) & ~self._ignored(ignored)[candidates])
+        lower, relative = self._lower_bounds()
+        candidates = np.flatnonzero((lower < near + self.margin) & ~self._ignored(ignored))
+        results, distances = self._distances(candidates)
+        lower[candidates] = distances
+        self._reference, self._lower = relative, lower
+        close = np.flatnonzero(distances < near)
         pairs = candidates[close]
         normals, points = self._witnesses([results[k] for k in close])
         joints = self.pair_joints[pairs]
@@ -243,7 +238,8 @@ class CollisionModel:
 
     def min_distance(self, q: np.ndarray, ignored: frozenset = frozenset()) -> tuple:
         """(distance in m, label) of the closest non-ignored pair at q; (inf, "") if none."""
-        lower = self._lower_bounds(q)
+        pin.forwardKinematics(self.robot.model, self.data, q)
+        lower = self._lower_bounds()[0]
         lower[self._ignored(ignored)] = np.inf
         best, label = np.inf, ""
         for pair in np.argsort(lower):
@@ -258,64 +254,31 @@ class CollisionModel:
                      tolerance: float = 0.0) -> list:
         """[(label, distance in m)] of the non-ignored pairs deeper than `tolerance` (m) into
         each other at q (distance < -tolerance), deepest first."""
-        lower = self._lower_bounds(q)
+        pin.forwardKinematics(self.robot.model, self.data, q)
+        lower = self._lower_bounds()[0]
         candidates = np.flatnonzero((lower < -tolerance) & ~self._ignored(ignored))
         distances = self._distances(candidates)[1]
         order = np.argsort(distances)
         return [(self.labels[candidates[k]], float(distances[k]))
                 for k in order if distances[k] < -tolerance]
 
-    def _lower_bounds(self, q):
-        """Distance lower bounds (pairs,) in m at q: the bounding volumes' distances, or
-        the last refresh's bounds minus the bodies' motion since, whichever is larger."""
-        pin.forwardKinematics(self.robot.model, self.data, q)
-        placements = self._place_geometries()
-        lower = self._volume_bounds(placements)
-        if self._reference is not None:
-            np.maximum(lower, self._lower - self._pair_motion(placements)[1], out=lower)
-        return lower
-
-    def _place_geometries(self):
-        """Geometry placements from the joint placements in self.data; returns the joint
-        placements (njoints, 4, 4) in the world."""
+    def _lower_bounds(self):
+        """Distance lower bounds (pairs,) in m at the joint placements of self.data: the
+        bounding volumes' distances, or the last call's bounds minus the pairs' relative
+        motion since, whichever is larger; and the joint pairs' relative placements."""
         pin.updateGeometryPlacements(self.robot.model, self.data, self.geometry_model,
                                      self.geometry_data)
-        return np.array([placement.homogeneous for placement in self.data.oMi])
-
-    def _volume_bounds(self, placements):
-        """Distances (m) between the pairs' bounding volumes: lower bounds of theirs."""
-        joint = placements[self._robot_joints]
-        centres = np.einsum("gij,gj->gi", joint[:, :3, :3], self._centres) + joint[:, :3, 3]
-        bounds = np.empty(len(self.pairs))
-        bounds[self._self_pairs] = (cdist(centres, centres).take(self._self_flat)
-                                    - self._self_radii)
-        # Signed distance from each sphere centre to each box: outside part + inside part.
-        gaps = np.abs(centres[:, None, :] - self._box_centres) - self._box_extents
-        inside = np.minimum(gaps.max(axis=2), 0.0)
-        np.maximum(gaps, 0.0, out=gaps)
-        signed = np.sqrt(np.einsum("gok,gok->go", gaps, gaps)) + inside
-        bounds[self._obstacle_pairs] = signed.take(self._obstacle_flat) - self._obstacle_radii
-        return bounds
-
-    def _pair_motion(self, placements):
-        """Bound (m) on how much each pair's distance may have shrunk since the refresh: the
-        largest displacement of the two bodies' geometry points (|dt| + angle * reach)."""
-        reference = self._reference
-        shift = placements[:, :3, 3] - reference[:, :3, 3]
-        cosine = 0.5 * (np.einsum("jik,jik->j", placements[:, :3, :3], reference[:, :3, :3]) - 1)
-        motion = (np.sqrt(np.einsum("jk,jk->j", shift, shift))
-                  + np.arccos(np.clip(cosine, -1.0, 1.0)) * self._reach)
-        return motion.max(), np.add.outer(motion, motion).take(self._flat_pair_joints)
-
-    def _refresh(self, placements, near):
-        """Full pass: bounding-volume bounds of all pairs, exact distances below near +
-        margin; returns those pair indices, their results and distances (m)."""
-        lower = self._volume_bounds(placements)
-        close = np.flatnonzero(lower < near + self.margin)
-        results, distances = self._distances(close)
-        lower[close] = distances
-        self._reference, self._lower, self._near = placements, lower, near
-        return close, results, distances
+        placements = np.array([placement.homogeneous for placement in self.data.oMi])
+        if self._reference is None:
+            previous, reference = np.zeros(0), (np.zeros((0, 3, 3)), np.zeros((0, 3)))
+        else:
+            previous, reference = self._lower, self._reference
+        lower, rotations, translations = _pair_bounds(
+            placements, self._robot_joints, self._centres, self.pairs[:, 0], self._pair_other,
+            self._pair_obstacle, self._pair_radius, self._box_centres, self._box_extents,
+            self._joint_pairs, self._moving_reach, self._pair_to_joint_pair, previous,
+            *reference)
+        return lower, (rotations, translations)
 
     def _distances(self, pairs):
         """Hull distance results and distances (k,) in m of pair indices `pairs` (geometry
@@ -341,3 +304,62 @@ class CollisionModel:
             mask[list(ignored)] = True
             self._ignored_key, self._ignored_mask = ignored, mask
         return self._ignored_mask
+
+
+@numba.njit(cache=True)
+def _pair_bounds(placements, robot_joints, centres, pair_robot, pair_other, pair_obstacle,
+                 pair_radius, box_centres, box_extents, joint_pairs, moving_reach,
+                 pair_to_joint_pair, previous, reference_rotations, reference_translations):
+    """Certified distance lower bounds (pairs,) in m, and the joint pairs' relative
+    placements (rotations (k, 3, 3), translations (k, 3) of the moving joint in the frame
+    joint). placements: joint placements (njoints, 4, 4), world. A bound is the bounding
+    volumes' signed distance (sphere to sphere, sphere to the obstacle's box), or, when
+    previous bounds are given (else an empty array), previous minus the pair's motion since
+    the reference placements (|dt| + angle * reach), whichever is larger."""
+    world = np.empty((len(centres), 3))
+    for g in range(len(centres)):
+        joint = placements[robot_joints[g]]
+        for i in range(3):
+            world[g, i] = joint[i, 3] + joint[i, 0] * centres[g, 0] + \
+                joint[i, 1] * centres[g, 1] + joint[i, 2] * centres[g, 2]
+    count = len(joint_pairs)
+    rotations, translations = np.empty((count, 3, 3)), np.empty((count, 3))
+    motion = np.zeros(count)
+    for k in range(count):
+        moving, frame = placements[joint_pairs[k, 0]], placements[joint_pairs[k, 1]]
+        for i in range(3):
+            translations[k, i] = frame[0, i] * (moving[0, 3] - frame[0, 3]) + \
+                frame[1, i] * (moving[1, 3] - frame[1, 3]) + \
+                frame[2, i] * (moving[2, 3] - frame[2, 3])
+            for j in range(3):
+                rotations[k, i, j] = frame[0, i] * moving[0, j] + frame[1, i] * moving[1, j] + \
+                    frame[2, i] * moving[2, j]
+        if len(previous):
+            shift = trace = 0.0
+            for i in range(3):
+                shift += (translations[k, i] - reference_translations[k, i]) ** 2
+                for j in range(3):
+                    trace += rotations[k, i, j] * reference_rotations[k, i, j]
+            cosine = min(max(0.5 * (trace - 1.0), -1.0), 1.0)
+            motion[k] = math.sqrt(shift) + math.acos(cosine) * moving_reach[k]
+    lower = np.empty(len(pair_robot))
+    for p in range(len(pair_robot)):
+        centre = world[pair_robot[p]]
+        if pair_obstacle[p]:
+            # signed distance from the sphere centre to the box: outside part + inside part
+            outside = 0.0
+            inside = -np.inf
+            for i in range(3):
+                gap = abs(centre[i] - box_centres[pair_other[p], i]) - \
+                    box_extents[pair_other[p], i]
+                inside = max(inside, gap)
+                outside += max(gap, 0.0) ** 2
+            distance = math.sqrt(outside) + min(inside, 0.0)
+        else:
+            other = world[pair_other[p]]
+            distance = math.sqrt((centre[0] - other[0]) ** 2 + (centre[1] - other[1]) ** 2
+                                 + (centre[2] - other[2]) ** 2)
+        lower[p] = distance - pair_radius[p]
+        if len(previous):
+            lower[p] = max(lower[p], previous[p] - motion[pair_to_joint_pair[p]])
+    return lower, rotations, translations
