@@ -30,6 +30,7 @@ from it), so the slope drives the search while the valley keeps postures near T.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -127,6 +128,14 @@ class _Arc:
     q_start: np.ndarray
     q_end: np.ndarray
 
+    @functools.cached_property
+    def start(self) -> np.ndarray:
+        return self.point_at(0.0)
+
+    @functools.cached_property
+    def end(self) -> np.ndarray:
+        return self.point_at(self.length)
+
     def point_at(self, u: float) -> np.ndarray:
         a = u / self.radius
         return self.center + self.radius * (math.cos(a) * self.e1 + math.sin(a) * self.e2)
@@ -143,9 +152,9 @@ class _Arc:
         in_plane = math.hypot(w1, w2)
         a = math.atan2(w2, w1)
         if in_plane == 0.0 or not 0.0 <= a <= self.angle:
-            ends = (0.0, self.length)
-            u = min(ends, key=lambda end: np.linalg.norm(point - self.point_at(end)))
-            return u, self.point_at(u), np.zeros(6)
+            u, end = min(((0.0, self.start), (self.length, self.end)),
+                         key=lambda candidate: _distance(point, candidate[1]))
+            return u, end, np.zeros(6)
         u = a * self.radius
         return u, self.point_at(u), (self.radius / in_plane) * self.tangent_at(u)
 
@@ -219,7 +228,7 @@ class RoughTrajectory:
         best = None
         for piece in self._pieces:
             u, closest, du = piece.closest(point)
-            distance = float(np.linalg.norm(point - closest))
+            distance = _distance(point, closest)
             if best is None or distance < best[0]:
                 best = (distance, piece, u, closest, du)
         distance, piece, u, closest, du = best
@@ -307,6 +316,12 @@ class RoughTrajectory:
                     posture_on_segment(j + 1, tangent_length)))
                 s += radius * turn
         return pieces
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Euclidean distance between two points of F (m)."""
+    difference = a - b
+    return math.sqrt(difference @ difference)
 
 
 def _base_rotation(q: np.ndarray) -> np.ndarray:
