@@ -59,7 +59,13 @@ class SearchVolume:
 
     def halfspaces(self) -> tuple:
         """(A (m, 3), b (m,)) with C = {v = (x, y, theta) : A v <= b}; polygon rows have unit
-        normals."""
+        normals. Read-only arrays, computed once (the posture generator asks at every
+        iteration)."""
+        if "_halfspaces" not in self.__dict__:
+            object.__setattr__(self, "_halfspaces", self._compute_halfspaces())
+        return self._halfspaces
+
+    def _compute_halfspaces(self) -> tuple:
         edges = np.roll(self.polygon, -1, axis=0) - self.polygon
         normals = np.column_stack([edges[:, 1], -edges[:, 0]])   # outward for CCW
         normals /= np.linalg.norm(normals, axis=1)[:, None]
@@ -68,6 +74,7 @@ class SearchVolume:
         A[-2:, 2] = [1.0, -1.0]
         b = np.concatenate([np.einsum("ij,ij->i", normals, self.polygon),
                             [self.theta_upper, -self.theta_lower]])
+        A.flags.writeable = b.flags.writeable = False
         return A, b
 
     def contains(self, v, tolerance: float = 1e-9) -> bool:
