@@ -319,12 +319,13 @@ class PostureGenerator:
             jacobian, error = self._spot_tasks[contact.spot].jacobian_and_error(self.robot, q)
             if getattr(contact, "position_only", False):
                 jacobian, error = jacobian[:3], error[:3]
-            largest_excess = max(largest_excess, float(np.max(np.abs(error)))
+            largest_excess = max(largest_excess, float(np.abs(error).max())
                                  - self._extra_tolerance(contact))
-            row = np.hstack([jacobian, np.zeros((len(error), n - nv))])
+            row = np.zeros((len(error), n))
+            row[:, :nv] = jacobian
             weight = getattr(contact, "weight", 1.0)
             if weight < 1.0:
-                guide_error = max(guide_error, float(np.max(np.abs(error))))
+                guide_error = max(guide_error, float(np.abs(error).max()))
                 guide_rows.append(math.sqrt(weight) * row)
                 guide_targets.append(math.sqrt(weight) * error)
             else:
@@ -332,7 +333,7 @@ class PostureGenerator:
                 targets.append(error)
         if free is not None:
             jacobian, error, b_free = self._free_rows(free, v)
-            largest_excess = max(largest_excess, float(np.max(np.abs(error))))
+            largest_excess = max(largest_excess, float(np.abs(error).max()))
             rows.append(np.hstack([jacobian, -b_free]))
             targets.append(error)
         contact_rows = np.vstack(rows) if rows else np.zeros((0, n))
@@ -350,35 +351,35 @@ class PostureGenerator:
         gradient -= settings.contact_weight * contact_rows.T @ contact_error
 
         if criterion is not None:
-            diagonal, linear, _ = criterion.quadratic(q)
-            hessian[:nv, :nv] += settings.criterion_weight * np.diag(diagonal)
+            curvature, linear, _ = criterion.quadratic(q)
+            hessian.flat[:nv * (n + 1):n + 1] += settings.criterion_weight * curvature  # dq's
             gradient[:nv] += settings.criterion_weight * linear
-        hessian[:nv, :nv] += settings.damping * np.eye(nv)
-        if n_free:
-            hessian[nv:nv + 3, nv:nv + 3] += settings.damping * np.eye(3)
+        hessian.flat[::n + 1] += settings.damping       # the whole diagonal
 
-        a, b = stability
-        inequalities = [np.hstack([a @ self.data.Jcom[:2], np.zeros((len(b), n_free))])]
-        lower = [np.full(len(b), -1e20)]
-        upper = [b - settings.com_margin - a @ self.data.com[0][:2]]
+        # inequality rows: CoM in the stability region, collision pairs, search volume
+        a_com, b_com = stability
         if self.collision is not None:
             distances, gradients, _ = self.collision.constraint_rows(
                 q, near=settings.collision_near, ignored=ignored)
-            if len(distances):
-                needed = np.minimum(settings.collision_margin - distances,
-                                    settings.collision_push)
-                inequalities.append(np.hstack([gradients, np.zeros((len(distances), n - nv))]))
-                lower.append(needed)
-                upper.append(np.full(len(distances), 1e20))
+        else:
+            distances, gradients = np.zeros(0), np.zeros((0, nv))
+        volume_rows = len(free.volume.halfspaces()[1]) if free is not None else 0
+        com_end, collision_end = len(b_com), len(b_com) + len(distances)
+        inequalities = np.zeros((collision_end + volume_rows, n))
+        lower = np.full(len(inequalities), -1e20)
+        upper = np.full(len(inequalities), 1e20)
+        inequalities[:com_end, :nv] = a_com @ self.data.Jcom[:2]
+        upper[:com_end] = b_com - settings.com_margin - a_com @ self.data.com[0][:2]
+        inequalities[com_end:collision_end, :nv] = gradients
+        lower[com_end:collision_end] = np.minimum(settings.collision_margin - distances,
+                                                  settings.collision_push)
         if free is not None:
-            a, b = free.volume.halfspaces()
-            inequalities.append(np.hstack([np.zeros((len(b), nv)), a]))
-            lower.append(np.full(len(b), -1e20))
-            upper.append(b - a @ v)
+            a_volume, b_volume = free.volume.halfspaces()
+            inequalities[collision_end:, nv:] = a_volume
+            upper[collision_end:] = b_volume - a_volume @ v
 
         box_lower, box_upper = self._box(q, n, n_free)
-        x = self._solve(hessian, gradient, np.vstack(inequalities), np.concatenate(lower),
-                        np.concatenate(upper), box_lower, box_upper)
+        x = self._solve(hessian, gradient, inequalities, lower, upper, box_lower, box_upper)
         dv = x[nv:nv + 3] if n_free else None
         return x[:nv], dv, largest_excess, guide_error
 
