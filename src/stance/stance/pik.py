@@ -103,6 +103,7 @@ class PIKSolver:
         usable = speed_step > 0
         self._speed_index = robot.limited_v_index[usable] if np.any(usable) else None
         self._inverse_speed_step = 1.0 / speed_step[usable]
+        self._no_level_steps = np.zeros((0, robot.model.nv))
         self.tasks = {}
         self._needs_com = False
         self._layout = self._make_layout()
@@ -291,23 +292,31 @@ class PIKSolver:
         levels saturated first (module docstring, step 4); factor 1.0 when nothing is."""
         if self._speed_index is None:
             return solution.dq, 1.0
-        speeds = self._inverse_speed_step
+        level_steps = solution.level_steps  # None: no per-level shares, uniform scaling
+        return _velocity_saturation(
+            solution.dq, fixed_dq, self._no_level_steps if level_steps is None else level_steps,
+            level_steps is not None, self._speed_index, self._inverse_speed_step)
 
-        def usage(dq):  # per limited joint: |variation| / allowed variation
-            return dq[self._speed_index] * speeds
 
-        if np.max(np.abs(usage(solution.dq))) <= 1.0:
-            return solution.dq, 1.0
-        if solution.level_steps is None or np.max(np.abs(usage(fixed_dq))) > 1.0:
-            scale = 1.0 / float(np.max(np.abs(usage(solution.dq))))
-            return solution.dq * scale, scale
-        dq = fixed_dq.copy()
-        for level_step in solution.level_steps:
-            fraction = _largest_fraction(usage(dq), usage(level_step))
-            if fraction < 1.0:
-                return dq + fraction * level_step, fraction
-            dq += level_step
+@numba.njit(cache=True)
+def _velocity_saturation(dq, fixed_dq, level_steps, by_level, speed_index, inverse_speed_step):
+    """PIKSolver._within_velocity_limits in one compiled call: (dq, factor) with
+    |dq[speed_index]| * inverse_speed_step <= 1, levels (rows of level_steps, added to
+    fixed_dq) saturated from the lowest when by_level, else dq scaled uniformly."""
+    worst = np.max(np.abs(dq[speed_index] * inverse_speed_step))
+    if worst <= 1.0:
         return dq, 1.0
+    if not by_level or np.max(np.abs(fixed_dq[speed_index] * inverse_speed_step)) > 1.0:
+        scale = 1.0 / worst
+        return dq * scale, scale
+    saturated = fixed_dq.copy()
+    for level_step in level_steps:
+        fraction = _largest_fraction(saturated[speed_index] * inverse_speed_step,
+                                     level_step[speed_index] * inverse_speed_step)
+        if fraction < 1.0:
+            return saturated + fraction * level_step, fraction
+        saturated += level_step
+    return saturated, 1.0
 
 
 @numba.njit(cache=True)
@@ -327,13 +336,15 @@ def _error_norms(error, task_starts, level_offsets, row_scale):
     return np.sqrt(task_norms), np.sqrt(level_norms)
 
 
+@numba.njit(cache=True)
 def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
     """Largest s in [0, 1] with |used + s added| <= 1 everywhere, given |used| <= 1."""
-    room = np.where(added > 0.0, 1.0 - used, 1.0 + used)
-    binding = np.abs(added) > room
-    if not np.any(binding):
-        return 1.0
-    return float(np.min(room[binding] / np.abs(added[binding])))
+    fraction = np.inf
+    for i in range(len(used)):
+        room = 1.0 - used[i] if added[i] > 0.0 else 1.0 + used[i]
+        if abs(added[i]) > room:
+            fraction = min(fraction, room / abs(added[i]))
+    return min(fraction, 1.0)
 
 
 def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
