@@ -103,27 +103,23 @@ class DampedHierarchy:
             values[fixed_index] = fixed_dq
         level_count = len(offsets) - 1
         state = getattr(previous, "restart", None)
-        first = -1
         if state is not None and state.jacobian is jacobian and state.target is target:
             previous.restart = None
             level_steps = previous.level_steps.copy()
             residuals = previous.step_residuals.copy()
-            first, dq, basis = _restart_point(jacobian, offsets, state.fixed, state.fixed_dq,
-                                              fixed, values, state.level_bases,
-                                              state.level_ranks, state.level_starts,
-                                              level_steps, self.rank_tolerance)
+            old_fixed, old_values = state.fixed, state.fixed_dq
             state.fixed, state.fixed_dq = fixed, values
-        if first < 0:  # a fresh solve
+        else:
             state = _RestartState(jacobian, target, fixed, values,
                                   np.empty((level_count, nv, nv)),
                                   np.zeros(level_count, dtype=np.int64),
                                   np.empty((level_count + 1, nv)))
-            first, dq, basis = 0, values.copy(), _free_axes(fixed)
             level_steps = np.zeros((level_count, nv))
             residuals = np.zeros(level_count)
-        dq = _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps,
-                           residuals, state.level_bases, state.level_ranks,
-                           state.level_starts, self.damping, self.rank_tolerance)
+            old_fixed, old_values = None, None
+        dq = _solve(jacobian, target, offsets, fixed, values, old_fixed, old_values,
+                    state.level_bases, state.level_ranks, state.level_starts, level_steps,
+                    residuals, self.damping, self.rank_tolerance)
         return HierarchySolution(dq=dq, step_residuals=residuals, level_steps=level_steps,
                                  restart=state)
 
@@ -138,6 +134,26 @@ def stack_levels(levels, nv: int):
     jacobian = np.ascontiguousarray(np.vstack([level.jacobian for level in levels]), dtype=float)
     target = np.concatenate([level.target for level in levels]).astype(float)
     return jacobian, target, offsets
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _solve(jacobian, target, offsets, fixed, values, old_fixed, old_values, level_bases,
+           level_ranks, level_starts, level_steps, residuals, damping, rank_tolerance):
+    """DampedHierarchy.solve_stacked in one compiled call (one dispatch instead of several):
+    restart from the state of a solution with old_fixed / old_values when they are given and
+    allow it (level_steps and residuals are then that solution's copies), else solve from
+    the first level; arrays filled in place as by _solve_levels. Returns dq."""
+    first = -1
+    if old_fixed is not None:
+        first, dq, basis = _restart_point(jacobian, offsets, old_fixed, old_values, fixed,
+                                          values, level_bases, level_ranks, level_starts,
+                                          level_steps, rank_tolerance)
+    if first < 0:
+        first, dq, basis = 0, values.copy(), _free_axes(fixed)
+        level_steps[:] = 0.0
+        residuals[:] = 0.0
+    return _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
+                         level_bases, level_ranks, level_starts, damping, rank_tolerance)
 
 
 @numba.njit(cache=True)
