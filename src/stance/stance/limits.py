@@ -82,6 +82,15 @@ def _progressive_decision(configuration, variation, free, q_index, v_index, lowe
     return index[:fixed], varied[:fixed], h[:fixed]
 
 
+@numba.njit(cache=True)
+def _keep_inside(q, q_next, q_index, lower, upper):
+    """RevoluteLimits.keep_inside compiled: q_next[i] clipped (in place) to
+    [min(lower, q[i]), max(upper, q[i])] for i in q_index."""
+    for j in range(len(q_index)):
+        i = q_index[j]
+        q_next[i] = min(max(q_next[i], min(lower[j], q[i])), max(upper[j], q[i]))
+
+
 class RevoluteLimits:
     """Limit model of 1-coordinate joints (revolute or prismatic): bounds and damping
     thresholds (rad or m).
@@ -114,9 +123,7 @@ class RevoluteLimits:
     def keep_inside(self, q, q_next) -> None:
         """Project q_next (in place) into the limits without ever moving a joint further
         out than q: removes the negligible overshoot of variations the decision ignored."""
-        current = q[self.q_index]
-        q_next[self.q_index] = np.clip(q_next[self.q_index], np.minimum(self.lower, current),
-                                       np.maximum(self.upper, current))
+        _keep_inside(q, q_next, self.q_index, self.lower, self.upper)
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
