@@ -347,11 +347,17 @@ def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
     return min(fraction, 1.0)
 
 
+@numba.njit(cache=True)
 def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
     """|J dq - target| of each stacked level (task units)."""
-    residual = target - jacobian @ dq
-    return np.array([np.linalg.norm(residual[offsets[i]:offsets[i + 1]])
-                     for i in range(len(offsets) - 1)])
+    residuals = np.zeros(len(offsets) - 1)
+    for level in range(len(residuals)):
+        for row in range(offsets[level], offsets[level + 1]):
+            residual = target[row]
+            for joint in range(len(dq)):
+                residual -= jacobian[row, joint] * dq[joint]
+            residuals[level] += residual * residual
+    return np.sqrt(residuals)
 
 
 HIERARCHIES = ("svd", "qp")
