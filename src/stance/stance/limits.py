@@ -50,15 +50,17 @@ NEGLIGIBLE_VARIATION = 1e-12  # rad: below this a joint variation is not worth a
 
 
 @numba.njit(cache=True)
-def _progressive_decision(configuration, variation, free, q_index, v_index, lower, upper,
-                          lower_threshold, upper_threshold, thickness, progressive):
-    """(v indices to fix, their fixed variations, h) among the joints at q_index / v_index
-    of the full configuration (nq), variation (nv) and free mask (nv). Equations 2-5, then
-    the clamping check; with progressive False only the clamping check (h in {0, 1})."""
+def _progressive_decision(configuration, variation, free, indices, table, progressive):
+    """(v indices to fix, [their fixed variations; h]) among the joints at indices = [q
+    indices; v indices] of the full configuration (nq), variation (nv) and free mask (nv),
+    table = [lower; upper; lower_threshold; upper_threshold; thickness] (few arguments: each
+    costs numba's dispatch). Equations 2-5, then the clamping check; with progressive False
+    only the clamping check (h in {0, 1})."""
+    q_index, v_index = indices
+    lower, upper, lower_threshold, upper_threshold, thickness = table
     count = len(q_index)
     index = np.zeros(count, dtype=np.int64)
-    varied = np.zeros(count)
-    h = np.zeros(count)
+    changes = np.zeros((2, count))
     fixed = 0
     for j in range(count):
         q, dq = configuration[q_index[j]], variation[v_index[j]]
@@ -77,9 +79,9 @@ def _progressive_decision(configuration, variation, free, q_index, v_index, lowe
                 damping = cubic_step((lower_threshold[j] - q) / thickness[j])
             fixed_dq = (1.0 - damping) * dq
         if damping > 0.0:
-            index[fixed], varied[fixed], h[fixed] = v_index[j], fixed_dq, damping
+            index[fixed], changes[0, fixed], changes[1, fixed] = v_index[j], fixed_dq, damping
             fixed += 1
-    return index[:fixed], varied[:fixed], h[:fixed]
+    return index[:fixed], changes[:, :fixed]
 
 
 @numba.njit(cache=True)
@@ -102,14 +104,14 @@ class RevoluteLimits:
     def __init__(self, names, q_index, v_index, lower, upper, activation: float = 0.2,
                  max_activation_fraction: float = 0.4):
         self.dof_names = list(names)
-        self.q_index = np.asarray(q_index, dtype=int)
-        self.v_index = np.asarray(v_index, dtype=int)
-        self.lower = np.asarray(lower, dtype=float)
-        self.upper = np.asarray(upper, dtype=float)
-        thickness = np.minimum(activation, max_activation_fraction * (self.upper - self.lower))
-        self.lower_threshold = self.lower + thickness
-        self.upper_threshold = self.upper - thickness
-        self.thickness = thickness
+        self._indices = np.array([q_index, v_index], dtype=np.int64).reshape(2, -1)
+        self.q_index, self.v_index = self._indices  # views
+        lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+        thickness = np.minimum(activation, max_activation_fraction * (upper - lower))
+        self._table = np.array([lower, upper, lower + thickness, upper - thickness,
+                                thickness]).reshape(5, -1)
+        (self.lower, self.upper, self.lower_threshold, self.upper_threshold,
+         self.thickness) = self._table  # views
 
     @classmethod
     def from_robot(cls, robot, activation: float = 0.2, owned_v=()) -> RevoluteLimits:
@@ -127,9 +129,9 @@ class RevoluteLimits:
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
-        return LimitDecision(*_progressive_decision(
-            q, dq, free, self.q_index, self.v_index, self.lower, self.upper,
-            self.lower_threshold, self.upper_threshold, self.thickness, progressive))
+        index, (fixed_dq, h) = _progressive_decision(q, dq, free, self._indices, self._table,
+                                                     progressive)
+        return LimitDecision(index, fixed_dq, h)
 
 
 class Strategy:
