@@ -24,7 +24,8 @@ def test_frame_error_is_pinocchios_log3(seed, angle):
     relative = pin.exp3(angle * axis / np.linalg.norm(axis))
     target = relative @ current
     translation, target_translation = rng.normal(size=3), rng.normal(size=3)
-    error = frame_error(target_translation, target, translation, current, np.empty(6))
+    error = frame_error(pin.SE3(target, target_translation).homogeneous,
+                        pin.SE3(current, translation).homogeneous, np.empty(6))
     np.testing.assert_allclose(error[:3], target_translation - translation, atol=1e-15)
     assert np.linalg.norm(error[3:]) <= np.pi + 1e-12
     # the same rotation (at exactly pi, +-axis are both right)

@@ -73,18 +73,17 @@ NEAR_PI_MARGIN = 1e-2    # rad: within it of pi, the axis from the symmetric par
 
 
 @numba.njit(cache=True)
-def frame_error(target_translation, target_rotation, translation, rotation, out):
-    """out = [p_target - p; log3(R_target R^T)] (m, rad), the rotation vector as
-    pinocchio.log3 gives it (norm in [0, pi]); compiled, as a frame task's error is needed
-    at every IK step (tests compare it with Pinocchio)."""
+def frame_error(target, current, out):
+    """out = [p_target - p; log3(R_target R^T)] (m, rad) of two 4x4 homogeneous poses
+    [R p; 0 1], the rotation vector as pinocchio.log3 gives it (norm in [0, pi]); compiled,
+    as a frame task's error is needed at every IK step (tests compare it with Pinocchio)."""
     for i in range(3):
-        out[i] = target_translation[i] - translation[i]
+        out[i] = target[i, 3] - current[i, 3]
     r = np.zeros((3, 3))
     for i in range(3):
         for j in range(3):
-            r[i, j] = (target_rotation[i, 0] * rotation[j, 0]
-                       + target_rotation[i, 1] * rotation[j, 1]
-                       + target_rotation[i, 2] * rotation[j, 2])
+            r[i, j] = (target[i, 0] * current[j, 0] + target[i, 1] * current[j, 1]
+                       + target[i, 2] * current[j, 2])
     vee = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
     cosine = min(max(0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0), -1.0), 1.0)
     angle = math.atan2(0.5 * math.sqrt(vee @ vee), cosine)  # |vee| = 2 sin(angle)
@@ -176,8 +175,7 @@ class FrameTask(Task):
     @target.setter
     def target(self, pose: pin.SE3) -> None:
         self._target = pose.copy()
-        self._target_translation = pose.translation.copy()
-        self._target_rotation = pose.rotation.copy()
+        self._target_homogeneous = pose.homogeneous
 
     def hold(self, robot, q) -> None:
         self.target = robot.data.oMf[self.frame_id]
@@ -189,10 +187,8 @@ class FrameTask(Task):
     def full_error(self, robot, out=None) -> np.ndarray:
         """6-D error [p_target - p; log3(R_target R^T)], world-aligned (m, rad); rotation
         rows 0 when no axis is selected. Written into `out` (6) if given."""
-        current = robot.data.oMf[self.frame_id]
         error = np.empty(6) if out is None else out
-        frame_error(self._target_translation, self._target_rotation, current.translation,
-                    current.rotation, error)
+        frame_error(self._target_homogeneous, robot.data.oMf[self.frame_id].homogeneous, error)
         if not self._needs_rotation:
             error[3:] = 0.0
         return error
