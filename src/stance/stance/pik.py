@@ -60,7 +60,8 @@ class StepResult:
 class _Layout:
     """Row layout of the enabled tasks, rebuilt when the stack or an enable flag changes."""
 
-    tasks: list                 # (task, row slice, sqrt(weight)) in priority order
+    tasks: list                 # (task, its Jacobian rows, its error rows, sqrt(weight)) in
+    #                             priority order: views of the solver's stacked arrays
     priorities: list
     level_tasks: list
     offsets: np.ndarray         # level row offsets (levels + 1)
@@ -217,6 +218,10 @@ class PIKSolver:
     def _make_layout(self) -> _Layout:
         enabled = sorted((task for task in self.tasks.values() if task.enabled),
                          key=lambda task: task.priority)
+        row_count = sum(task.dimension for task in enabled)
+        jacobian = self._jacobian = np.zeros((row_count, self.robot.model.nv))
+        error = self._error = np.zeros(row_count)
+        self._target = np.zeros(row_count)
         placed, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
         gains = []
         row = 0
@@ -228,16 +233,14 @@ class PIKSolver:
                 level_tasks.append([])
             level_tasks[-1].append(task.name)
             scale = float(np.sqrt(task.weight))
-            placed.append((task, slice(row, row + task.dimension), scale))
+            rows = slice(row, row + task.dimension)
+            placed.append((task, jacobian[rows], error[rows], scale))
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
             row += task.dimension
         if priorities:
             offsets.append(row)
-        self._jacobian = np.zeros((row, self.robot.model.nv))
-        self._target = np.zeros(row)
-        self._error = np.zeros(row)
         return _Layout(placed, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
                        *step_cap_groups(enabled))
@@ -246,11 +249,11 @@ class PIKSolver:
         """Write every enabled task's rows into the stacked Jacobian, error and target
         (Jacobian and target rows scaled by sqrt(weight))."""
         jacobian, target, error = self._jacobian, self._target, self._error
-        layout = self._layout
-        for task, rows, scale in layout.tasks:
-            task.write(self.robot, q, jacobian[rows], error[rows])
+        layout, robot = self._layout, self.robot
+        for task, task_jacobian, task_error, scale in layout.tasks:
+            task.write(robot, q, task_jacobian, task_error)
             if scale != 1.0:
-                jacobian[rows] *= scale
+                task_jacobian *= scale
         capped_steps(error, layout.row_gain, layout.row_group, layout.group_cap,
                      layout.row_scale, target)
         return jacobian, target, error
@@ -260,7 +263,7 @@ class PIKSolver:
         task_norms, level_norms = _error_norms(error, layout.task_starts, layout.offsets,
                                                layout.row_scale)
         task_errors = {task.name: float(norm)
-                       for (task, _, _), norm in zip(layout.tasks, task_norms)}
+                       for (task, *_), norm in zip(layout.tasks, task_norms)}
         levels = [LevelReport(priority, names, float(norm), float(residual))
                   for priority, names, norm, residual in zip(
                       layout.priorities, layout.level_tasks, level_norms, step_residuals)]
