@@ -174,7 +174,7 @@ class PIKSolver:
         iterations = 0
         solution = None
         while True:
-            index = np.flatnonzero(fixed)
+            index = fixed.nonzero()[0]
             restart = {} if getattr(solution, "restart", None) is None else \
                 {"previous": solution}  # re-solve only the levels the new fixes touch
             solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
