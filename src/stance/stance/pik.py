@@ -262,11 +262,11 @@ class PIKSolver:
         layout = self._layout
         task_norms, level_norms = _error_norms(error, layout.task_starts, layout.offsets,
                                                layout.row_scale)
-        task_errors = {task.name: float(norm)
-                       for (task, *_), norm in zip(layout.tasks, task_norms)}
-        levels = [LevelReport(priority, names, float(norm), float(residual))
-                  for priority, names, norm, residual in zip(
-                      layout.priorities, layout.level_tasks, level_norms, step_residuals)]
+        task_errors = {task.name: norm  # tolist: Python floats without one call per value
+                       for (task, *_), norm in zip(layout.tasks, task_norms.tolist())}
+        levels = [LevelReport(*report) for report in zip(
+            layout.priorities, layout.level_tasks, level_norms.tolist(),
+            np.asarray(step_residuals, dtype=float).tolist())]
         for task in self.tasks.values():
             if not task.enabled:
                 _, task_error = task.jacobian_and_error(self.robot, q)
