@@ -51,7 +51,7 @@ NEGLIGIBLE_VARIATION = 1e-12  # rad: below this a joint variation is not worth a
 
 @numba.njit(cache=True)
 def _progressive_decision(configuration, variation, free, indices, table, progressive):
-    """(v indices to fix, [their fixed variations; h]) among the joints at indices = [q
+    """(v indices to fix, their fixed variations, h) among the joints at indices = [q
     indices; v indices] of the full configuration (nq), variation (nv) and free mask (nv),
     table = [lower; upper; lower_threshold; upper_threshold; thickness] (few arguments: each
     costs numba's dispatch). Equations 2-5, then the clamping check; with progressive False
@@ -60,7 +60,8 @@ def _progressive_decision(configuration, variation, free, indices, table, progre
     lower, upper, lower_threshold, upper_threshold, thickness = table
     count = len(q_index)
     index = np.zeros(count, dtype=np.int64)
-    changes = np.zeros((2, count))
+    varied = np.zeros(count)
+    h = np.zeros(count)
     fixed = 0
     for j in range(count):
         q, dq = configuration[q_index[j]], variation[v_index[j]]
@@ -79,9 +80,9 @@ def _progressive_decision(configuration, variation, free, indices, table, progre
                 damping = cubic_step((lower_threshold[j] - q) / thickness[j])
             fixed_dq = (1.0 - damping) * dq
         if damping > 0.0:
-            index[fixed], changes[0, fixed], changes[1, fixed] = v_index[j], fixed_dq, damping
+            index[fixed], varied[fixed], h[fixed] = v_index[j], fixed_dq, damping
             fixed += 1
-    return index[:fixed], changes[:, :fixed]
+    return index[:fixed], varied[:fixed], h[:fixed]
 
 
 @numba.njit(cache=True)
@@ -129,9 +130,8 @@ class RevoluteLimits:
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
-        index, (fixed_dq, h) = _progressive_decision(q, dq, free, self._indices, self._table,
-                                                     progressive)
-        return LimitDecision(index, fixed_dq, h)
+        return LimitDecision(*_progressive_decision(q, dq, free, self._indices, self._table,
+                                                    progressive))
 
 
 class Strategy:
