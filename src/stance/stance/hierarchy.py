@@ -225,15 +225,27 @@ def _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, resi
         level_steps[level] = 0.0
         if rank > 0 and rows.shape[0] > 0:
             projected = _sparse_rows_product(rows, basis)
-            level_steps[level] = basis @ _damped_least_squares(
-                projected, wanted - rows @ dq, damping_sq)
+            level_steps[level] = _times(basis, _damped_least_squares(
+                projected, wanted - _times(rows, dq), damping_sq))
             dq += level_steps[level]
             if level < level_count - 1:
                 basis = _nullspace_update(projected, basis, rank_tolerance)
-        residual = wanted - rows @ dq
+        residual = wanted - _times(rows, dq)
         residuals[level] = np.sqrt(residual @ residual)
     level_starts[level_count] = dq
     return dq
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _times(matrix, vector):
+    """matrix @ vector (rows contiguous) by dot products: no BLAS call at these sizes."""
+    product = np.zeros(matrix.shape[0])
+    for i in range(matrix.shape[0]):
+        acc = 0.0
+        for j in range(matrix.shape[1]):
+            acc += matrix[i, j] * vector[j]
+        product[i] = acc
+    return product
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
@@ -282,14 +294,30 @@ def _damped_least_squares(projected, residual, damping_sq):
     """argmin |P y - r|^2 + lambda^2 |y|^2 through the smaller Gram matrix of P."""
     rows, cols = projected.shape
     if rows <= cols:
-        gram = projected @ projected.T
+        x = _spd_solve(_damped_gram(projected, damping_sq), residual)
+        y = np.zeros(cols)
         for i in range(rows):
-            gram[i, i] += damping_sq
-        return projected.T @ _spd_solve(gram, residual)
-    gram = projected.T @ projected
-    for i in range(cols):
+            for c in range(cols):
+                y[c] += projected[i, c] * x[i]
+        return y
+    transposed = np.ascontiguousarray(projected.T)
+    return _spd_solve(_damped_gram(transposed, damping_sq), _times(transposed, residual))
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _damped_gram(a, damping_sq):
+    """Lower triangle of a a^T + damping_sq I, all _spd_solve reads (upper left zero): dot
+    products of contiguous rows, cheaper than a BLAS call at these sizes."""
+    n = a.shape[0]
+    gram = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = 0.0
+            for c in range(a.shape[1]):
+                acc += a[i, c] * a[j, c]
+            gram[i, j] = acc
         gram[i, i] += damping_sq
-    return _spd_solve(gram, projected.T @ residual)
+    return gram
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
