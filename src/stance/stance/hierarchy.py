@@ -230,8 +230,10 @@ def _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, resi
             dq += level_steps[level]
             if level < level_count - 1:
                 basis = _nullspace_update(projected, basis, rank_tolerance)
-        residual = wanted - _times(rows, dq)
-        residuals[level] = np.sqrt(residual @ residual)
+        square = 0.0
+        for value in wanted - _times(rows, dq):
+            square += value * value
+        residuals[level] = np.sqrt(square)
     level_starts[level_count] = dq
     return dq
 

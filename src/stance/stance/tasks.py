@@ -73,6 +73,12 @@ NEAR_PI_MARGIN = 1e-2    # rad: within it of pi, the axis from the symmetric par
 
 
 @numba.njit(cache=True)
+def _length(vector):
+    """Euclidean norm of a 3-vector (numba's dot would call BLAS)."""
+    return math.sqrt(vector[0] * vector[0] + vector[1] * vector[1] + vector[2] * vector[2])
+
+
+@numba.njit(cache=True)
 def frame_error(target, current, out):
     """out = [p_target - p; log3(R_target R^T)] (m, rad) of two 4x4 homogeneous poses
     [R p; 0 1], the rotation vector as pinocchio.log3 gives it (norm in [0, pi]); compiled,
@@ -87,7 +93,7 @@ def frame_error(target, current, out):
                        + target[i, 2] * current[j, 2])
     vee = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
     cosine = min(max(0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0), -1.0), 1.0)
-    angle = math.atan2(0.5 * math.sqrt(vee @ vee), cosine)  # |vee| = 2 sin(angle)
+    angle = math.atan2(0.5 * _length(vee), cosine)  # |vee| = 2 sin(angle)
     if angle < NEAR_ZERO_ANGLE:
         out[3:] = (0.5 + angle * angle / 12.0) * vee
     elif angle < math.pi - NEAR_PI_MARGIN:
@@ -104,7 +110,7 @@ def frame_error(target, current, out):
         for i in range(3):
             if i != k:
                 axis[i] = (r[i, k] + r[k, i]) / (2.0 * (1.0 - cosine) * axis[k])
-        out[3:] = angle / math.sqrt(axis @ axis) * axis
+        out[3:] = angle / _length(axis) * axis
 
 
 class Task:
