@@ -103,27 +103,23 @@ class DampedHierarchy:
             values[fixed_index] = fixed_dq
         level_count = len(offsets) - 1
         state = getattr(previous, "restart", None)
-        first = -1
         if state is not None and state.jacobian is jacobian and state.target is target:
             previous.restart = None
             level_steps = previous.level_steps.copy()
             residuals = previous.step_residuals.copy()
-            first, dq, basis = _restart_point(jacobian, offsets, state.fixed, state.fixed_dq,
-                                              fixed, values, state.level_bases,
-                                              state.level_ranks, state.level_starts,
-                                              level_steps, self.rank_tolerance)
+            old_fixed, old_values = state.fixed, state.fixed_dq
             state.fixed, state.fixed_dq = fixed, values
-        if first < 0:  # a fresh solve
+        else:
             state = _RestartState(jacobian, target, fixed, values,
                                   np.empty((level_count, nv, nv)),
                                   np.zeros(level_count, dtype=np.int64),
                                   np.empty((level_count + 1, nv)))
-            first, dq, basis = 0, values.copy(), _free_axes(fixed)
             level_steps = np.zeros((level_count, nv))
             residuals = np.zeros(level_count)
-        dq = _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps,
-                           residuals, state.level_bases, state.level_ranks,
-                           state.level_starts, self.damping, self.rank_tolerance)
+            old_fixed, old_values = None, None
+        dq = _solve(jacobian, target, offsets, fixed, values, old_fixed, old_values,
+                    state.level_bases, state.level_ranks, state.level_starts, level_steps,
+                    residuals, self.damping, self.rank_tolerance)
         return HierarchySolution(dq=dq, step_residuals=residuals, level_steps=level_steps,
                                  restart=state)
 
@@ -138,6 +134,26 @@ def stack_levels(levels, nv: int):
     jacobian = np.ascontiguousarray(np.vstack([level.jacobian for level in levels]), dtype=float)
     target = np.concatenate([level.target for level in levels]).astype(float)
     return jacobian, target, offsets
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _solve(jacobian, target, offsets, fixed, values, old_fixed, old_values, level_bases,
+           level_ranks, level_starts, level_steps, residuals, damping, rank_tolerance):
+    """DampedHierarchy.solve_stacked in one compiled call (one dispatch instead of several):
+    restart from the state of a solution with old_fixed / old_values when they are given and
+    allow it (level_steps and residuals are then that solution's copies), else solve from
+    the first level; arrays filled in place as by _solve_levels. Returns dq."""
+    first = -1
+    if old_fixed is not None:
+        first, dq, basis = _restart_point(jacobian, offsets, old_fixed, old_values, fixed,
+                                          values, level_bases, level_ranks, level_starts,
+                                          level_steps, rank_tolerance)
+    if first < 0:
+        first, dq, basis = 0, values.copy(), _free_axes(fixed)
+        level_steps[:] = 0.0
+        residuals[:] = 0.0
+    return _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
+                         level_bases, level_ranks, level_starts, damping, rank_tolerance)
 
 
 @numba.njit(cache=True)
@@ -209,15 +225,29 @@ def _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, resi
         level_steps[level] = 0.0
         if rank > 0 and rows.shape[0] > 0:
             projected = _sparse_rows_product(rows, basis)
-            level_steps[level] = basis @ _damped_least_squares(
-                projected, wanted - rows @ dq, damping_sq)
+            level_steps[level] = _times(basis, _damped_least_squares(
+                projected, wanted - _times(rows, dq), damping_sq))
             dq += level_steps[level]
             if level < level_count - 1:
                 basis = _nullspace_update(projected, basis, rank_tolerance)
-        residual = wanted - rows @ dq
-        residuals[level] = np.sqrt(residual @ residual)
+        square = 0.0
+        for value in wanted - _times(rows, dq):
+            square += value * value
+        residuals[level] = np.sqrt(square)
     level_starts[level_count] = dq
     return dq
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _times(matrix, vector):
+    """matrix @ vector (rows contiguous) by dot products: no BLAS call at these sizes."""
+    product = np.zeros(matrix.shape[0])
+    for i in range(matrix.shape[0]):
+        acc = 0.0
+        for j in range(matrix.shape[1]):
+            acc += matrix[i, j] * vector[j]
+        product[i] = acc
+    return product
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
@@ -266,14 +296,30 @@ def _damped_least_squares(projected, residual, damping_sq):
     """argmin |P y - r|^2 + lambda^2 |y|^2 through the smaller Gram matrix of P."""
     rows, cols = projected.shape
     if rows <= cols:
-        gram = projected @ projected.T
+        x = _spd_solve(_damped_gram(projected, damping_sq), residual)
+        y = np.zeros(cols)
         for i in range(rows):
-            gram[i, i] += damping_sq
-        return projected.T @ _spd_solve(gram, residual)
-    gram = projected.T @ projected
-    for i in range(cols):
+            for c in range(cols):
+                y[c] += projected[i, c] * x[i]
+        return y
+    transposed = np.ascontiguousarray(projected.T)
+    return _spd_solve(_damped_gram(transposed, damping_sq), _times(transposed, residual))
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _damped_gram(a, damping_sq):
+    """Lower triangle of a a^T + damping_sq I, all _spd_solve reads (upper left zero): dot
+    products of contiguous rows, cheaper than a BLAS call at these sizes."""
+    n = a.shape[0]
+    gram = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = 0.0
+            for c in range(a.shape[1]):
+                acc += a[i, c] * a[j, c]
+            gram[i, j] = acc
         gram[i, i] += damping_sq
-    return _spd_solve(gram, projected.T @ residual)
+    return gram
 
 
 @numba.njit(cache=True, fastmath=REORDERING)

@@ -50,11 +50,14 @@ NEGLIGIBLE_VARIATION = 1e-12  # rad: below this a joint variation is not worth a
 
 
 @numba.njit(cache=True)
-def _progressive_decision(configuration, variation, free, q_index, v_index, lower, upper,
-                          lower_threshold, upper_threshold, thickness, progressive):
-    """(v indices to fix, their fixed variations, h) among the joints at q_index / v_index
-    of the full configuration (nq), variation (nv) and free mask (nv). Equations 2-5, then
-    the clamping check; with progressive False only the clamping check (h in {0, 1})."""
+def _progressive_decision(configuration, variation, free, indices, table, progressive):
+    """(v indices to fix, their fixed variations, h) among the joints at indices = [q
+    indices; v indices] of the full configuration (nq), variation (nv) and free mask (nv),
+    table = [lower; upper; lower_threshold; upper_threshold; thickness] (few arguments: each
+    costs numba's dispatch). Equations 2-5, then the clamping check; with progressive False
+    only the clamping check (h in {0, 1})."""
+    q_index, v_index = indices
+    lower, upper, lower_threshold, upper_threshold, thickness = table
     count = len(q_index)
     index = np.zeros(count, dtype=np.int64)
     varied = np.zeros(count)
@@ -82,6 +85,15 @@ def _progressive_decision(configuration, variation, free, q_index, v_index, lowe
     return index[:fixed], varied[:fixed], h[:fixed]
 
 
+@numba.njit(cache=True)
+def _keep_inside(q, q_next, q_index, lower, upper):
+    """RevoluteLimits.keep_inside compiled: q_next[i] clipped (in place) to
+    [min(lower, q[i]), max(upper, q[i])] for i in q_index."""
+    for j in range(len(q_index)):
+        i = q_index[j]
+        q_next[i] = min(max(q_next[i], min(lower[j], q[i])), max(upper[j], q[i]))
+
+
 class RevoluteLimits:
     """Limit model of 1-coordinate joints (revolute or prismatic): bounds and damping
     thresholds (rad or m).
@@ -93,14 +105,14 @@ class RevoluteLimits:
     def __init__(self, names, q_index, v_index, lower, upper, activation: float = 0.2,
                  max_activation_fraction: float = 0.4):
         self.dof_names = list(names)
-        self.q_index = np.asarray(q_index, dtype=int)
-        self.v_index = np.asarray(v_index, dtype=int)
-        self.lower = np.asarray(lower, dtype=float)
-        self.upper = np.asarray(upper, dtype=float)
-        thickness = np.minimum(activation, max_activation_fraction * (self.upper - self.lower))
-        self.lower_threshold = self.lower + thickness
-        self.upper_threshold = self.upper - thickness
-        self.thickness = thickness
+        self._indices = np.array([q_index, v_index], dtype=np.int64).reshape(2, -1)
+        self.q_index, self.v_index = self._indices  # views
+        lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+        thickness = np.minimum(activation, max_activation_fraction * (upper - lower))
+        self._table = np.array([lower, upper, lower + thickness, upper - thickness,
+                                thickness]).reshape(5, -1)
+        (self.lower, self.upper, self.lower_threshold, self.upper_threshold,
+         self.thickness) = self._table  # views
 
     @classmethod
     def from_robot(cls, robot, activation: float = 0.2, owned_v=()) -> RevoluteLimits:
@@ -114,15 +126,12 @@ class RevoluteLimits:
     def keep_inside(self, q, q_next) -> None:
         """Project q_next (in place) into the limits without ever moving a joint further
         out than q: removes the negligible overshoot of variations the decision ignored."""
-        current = q[self.q_index]
-        q_next[self.q_index] = np.clip(q_next[self.q_index], np.minimum(self.lower, current),
-                                       np.maximum(self.upper, current))
+        _keep_inside(q, q_next, self.q_index, self.lower, self.upper)
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
-        return LimitDecision(*_progressive_decision(
-            q, dq, free, self.q_index, self.v_index, self.lower, self.upper,
-            self.lower_threshold, self.upper_threshold, self.thickness, progressive))
+        return LimitDecision(*_progressive_decision(q, dq, free, self._indices, self._table,
+                                                    progressive))
 
 
 class Strategy:

@@ -60,7 +60,8 @@ class StepResult:
 class _Layout:
     """Row layout of the enabled tasks, rebuilt when the stack or an enable flag changes."""
 
-    tasks: list                 # (task, row slice, sqrt(weight)) in priority order
+    tasks: list                 # (task, its Jacobian rows, its error rows, sqrt(weight)) in
+    #                             priority order: views of the solver's stacked arrays
     priorities: list
     level_tasks: list
     offsets: np.ndarray         # level row offsets (levels + 1)
@@ -103,6 +104,7 @@ class PIKSolver:
         usable = speed_step > 0
         self._speed_index = robot.limited_v_index[usable] if np.any(usable) else None
         self._inverse_speed_step = 1.0 / speed_step[usable]
+        self._no_level_steps = np.zeros((0, robot.model.nv))
         self.tasks = {}
         self._needs_com = False
         self._layout = self._make_layout()
@@ -172,7 +174,7 @@ class PIKSolver:
         iterations = 0
         solution = None
         while True:
-            index = np.flatnonzero(fixed)
+            index = fixed.nonzero()[0]
             restart = {} if getattr(solution, "restart", None) is None else \
                 {"previous": solution}  # re-solve only the levels the new fixes touch
             solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
@@ -216,6 +218,10 @@ class PIKSolver:
     def _make_layout(self) -> _Layout:
         enabled = sorted((task for task in self.tasks.values() if task.enabled),
                          key=lambda task: task.priority)
+        row_count = sum(task.dimension for task in enabled)
+        jacobian = self._jacobian = np.zeros((row_count, self.robot.model.nv))
+        error = self._error = np.zeros(row_count)
+        self._target = np.zeros(row_count)
         placed, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
         gains = []
         row = 0
@@ -227,16 +233,14 @@ class PIKSolver:
                 level_tasks.append([])
             level_tasks[-1].append(task.name)
             scale = float(np.sqrt(task.weight))
-            placed.append((task, slice(row, row + task.dimension), scale))
+            rows = slice(row, row + task.dimension)
+            placed.append((task, jacobian[rows], error[rows], scale))
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
             row += task.dimension
         if priorities:
             offsets.append(row)
-        self._jacobian = np.zeros((row, self.robot.model.nv))
-        self._target = np.zeros(row)
-        self._error = np.zeros(row)
         return _Layout(placed, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
                        *step_cap_groups(enabled))
@@ -245,11 +249,11 @@ class PIKSolver:
         """Write every enabled task's rows into the stacked Jacobian, error and target
         (Jacobian and target rows scaled by sqrt(weight))."""
         jacobian, target, error = self._jacobian, self._target, self._error
-        layout = self._layout
-        for task, rows, scale in layout.tasks:
-            task.write(self.robot, q, jacobian[rows], error[rows])
+        layout, robot = self._layout, self.robot
+        for task, task_jacobian, task_error, scale in layout.tasks:
+            task.write(robot, q, task_jacobian, task_error)
             if scale != 1.0:
-                jacobian[rows] *= scale
+                task_jacobian *= scale
         capped_steps(error, layout.row_gain, layout.row_group, layout.group_cap,
                      layout.row_scale, target)
         return jacobian, target, error
@@ -258,11 +262,11 @@ class PIKSolver:
         layout = self._layout
         task_norms, level_norms = _error_norms(error, layout.task_starts, layout.offsets,
                                                layout.row_scale)
-        task_errors = {task.name: float(norm)
-                       for (task, _, _), norm in zip(layout.tasks, task_norms)}
-        levels = [LevelReport(priority, names, float(norm), float(residual))
-                  for priority, names, norm, residual in zip(
-                      layout.priorities, layout.level_tasks, level_norms, step_residuals)]
+        task_errors = {task.name: norm  # tolist: Python floats without one call per value
+                       for (task, *_), norm in zip(layout.tasks, task_norms.tolist())}
+        levels = [LevelReport(*report) for report in zip(
+            layout.priorities, layout.level_tasks, level_norms.tolist(),
+            np.asarray(step_residuals, dtype=float).tolist())]
         for task in self.tasks.values():
             if not task.enabled:
                 _, task_error = task.jacobian_and_error(self.robot, q)
@@ -291,23 +295,31 @@ class PIKSolver:
         levels saturated first (module docstring, step 4); factor 1.0 when nothing is."""
         if self._speed_index is None:
             return solution.dq, 1.0
-        speeds = self._inverse_speed_step
+        level_steps = solution.level_steps  # None: no per-level shares, uniform scaling
+        return _velocity_saturation(
+            solution.dq, fixed_dq, self._no_level_steps if level_steps is None else level_steps,
+            level_steps is not None, self._speed_index, self._inverse_speed_step)
 
-        def usage(dq):  # per limited joint: |variation| / allowed variation
-            return dq[self._speed_index] * speeds
 
-        if np.max(np.abs(usage(solution.dq))) <= 1.0:
-            return solution.dq, 1.0
-        if solution.level_steps is None or np.max(np.abs(usage(fixed_dq))) > 1.0:
-            scale = 1.0 / float(np.max(np.abs(usage(solution.dq))))
-            return solution.dq * scale, scale
-        dq = fixed_dq.copy()
-        for level_step in solution.level_steps:
-            fraction = _largest_fraction(usage(dq), usage(level_step))
-            if fraction < 1.0:
-                return dq + fraction * level_step, fraction
-            dq += level_step
+@numba.njit(cache=True)
+def _velocity_saturation(dq, fixed_dq, level_steps, by_level, speed_index, inverse_speed_step):
+    """PIKSolver._within_velocity_limits in one compiled call: (dq, factor) with
+    |dq[speed_index]| * inverse_speed_step <= 1, levels (rows of level_steps, added to
+    fixed_dq) saturated from the lowest when by_level, else dq scaled uniformly."""
+    worst = np.max(np.abs(dq[speed_index] * inverse_speed_step))
+    if worst <= 1.0:
         return dq, 1.0
+    if not by_level or np.max(np.abs(fixed_dq[speed_index] * inverse_speed_step)) > 1.0:
+        scale = 1.0 / worst
+        return dq * scale, scale
+    saturated = fixed_dq.copy()
+    for level_step in level_steps:
+        fraction = _largest_fraction(saturated[speed_index] * inverse_speed_step,
+                                     level_step[speed_index] * inverse_speed_step)
+        if fraction < 1.0:
+            return saturated + fraction * level_step, fraction
+        saturated += level_step
+    return saturated, 1.0
 
 
 @numba.njit(cache=True)
@@ -327,20 +339,28 @@ def _error_norms(error, task_starts, level_offsets, row_scale):
     return np.sqrt(task_norms), np.sqrt(level_norms)
 
 
+@numba.njit(cache=True)
 def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
     """Largest s in [0, 1] with |used + s added| <= 1 everywhere, given |used| <= 1."""
-    room = np.where(added > 0.0, 1.0 - used, 1.0 + used)
-    binding = np.abs(added) > room
-    if not np.any(binding):
-        return 1.0
-    return float(np.min(room[binding] / np.abs(added[binding])))
+    fraction = np.inf
+    for i in range(len(used)):
+        room = 1.0 - used[i] if added[i] > 0.0 else 1.0 + used[i]
+        if abs(added[i]) > room:
+            fraction = min(fraction, room / abs(added[i]))
+    return min(fraction, 1.0)
 
 
+@numba.njit(cache=True)
 def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
     """|J dq - target| of each stacked level (task units)."""
-    residual = target - jacobian @ dq
-    return np.array([np.linalg.norm(residual[offsets[i]:offsets[i + 1]])
-                     for i in range(len(offsets) - 1)])
+    residuals = np.zeros(len(offsets) - 1)
+    for level in range(len(residuals)):
+        for row in range(offsets[level], offsets[level + 1]):
+            residual = target[row]
+            for joint in range(len(dq)):
+                residual -= jacobian[row, joint] * dq[joint]
+            residuals[level] += residual * residual
+    return np.sqrt(residuals)
 
 
 HIERARCHIES = ("svd", "qp")

@@ -43,7 +43,8 @@ def pose_from_position_quaternion(position, quaternion_xyzw, tolerance: float = 
 @numba.njit(cache=True)
 def capped_steps(error, gain, group, cap, scale, out):
     """out = scale * step, step = gain * error with each row group's part capped in norm
-    at cap[group] (per row: gain, group, scale; task units)."""
+    at cap[group] (per row: gain, group, scale; task units). Returns nothing: numba boxes
+    any returned array at a cost (~0.5 us)."""
     squares = np.zeros(len(cap))
     for row in range(len(error)):
         out[row] = gain[row] * error[row]
@@ -53,7 +54,6 @@ def capped_steps(error, gain, group, cap, scale, out):
         if norm > cap[group[row]]:
             out[row] *= cap[group[row]] / norm
         out[row] *= scale[row]
-    return out
 
 
 def step_cap_groups(tasks) -> tuple:
@@ -73,21 +73,27 @@ NEAR_PI_MARGIN = 1e-2    # rad: within it of pi, the axis from the symmetric par
 
 
 @numba.njit(cache=True)
-def frame_error(target_translation, target_rotation, translation, rotation, out):
-    """out = [p_target - p; log3(R_target R^T)] (m, rad), the rotation vector as
-    pinocchio.log3 gives it (norm in [0, pi]); compiled, as a frame task's error is needed
-    at every IK step (tests compare it with Pinocchio)."""
+def _length(vector):
+    """Euclidean norm of a 3-vector (numba's dot would call BLAS)."""
+    return math.sqrt(vector[0] * vector[0] + vector[1] * vector[1] + vector[2] * vector[2])
+
+
+@numba.njit(cache=True)
+def frame_error(target, current, out):
+    """out = [p_target - p; log3(R_target R^T)] (m, rad) of two 4x4 homogeneous poses
+    [R p; 0 1], the rotation vector as pinocchio.log3 gives it (norm in [0, pi]); compiled,
+    as a frame task's error is needed at every IK step (tests compare it with Pinocchio).
+    Returns nothing, as capped_steps."""
     for i in range(3):
-        out[i] = target_translation[i] - translation[i]
+        out[i] = target[i, 3] - current[i, 3]
     r = np.zeros((3, 3))
     for i in range(3):
         for j in range(3):
-            r[i, j] = (target_rotation[i, 0] * rotation[j, 0]
-                       + target_rotation[i, 1] * rotation[j, 1]
-                       + target_rotation[i, 2] * rotation[j, 2])
+            r[i, j] = (target[i, 0] * current[j, 0] + target[i, 1] * current[j, 1]
+                       + target[i, 2] * current[j, 2])
     vee = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
     cosine = min(max(0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0), -1.0), 1.0)
-    angle = math.atan2(0.5 * math.sqrt(vee @ vee), cosine)  # |vee| = 2 sin(angle)
+    angle = math.atan2(0.5 * _length(vee), cosine)  # |vee| = 2 sin(angle)
     if angle < NEAR_ZERO_ANGLE:
         out[3:] = (0.5 + angle * angle / 12.0) * vee
     elif angle < math.pi - NEAR_PI_MARGIN:
@@ -104,8 +110,7 @@ def frame_error(target_translation, target_rotation, translation, rotation, out)
         for i in range(3):
             if i != k:
                 axis[i] = (r[i, k] + r[k, i]) / (2.0 * (1.0 - cosine) * axis[k])
-        out[3:] = angle / math.sqrt(axis @ axis) * axis
-    return out
+        out[3:] = angle / _length(axis) * axis
 
 
 class Task:
@@ -176,8 +181,7 @@ class FrameTask(Task):
     @target.setter
     def target(self, pose: pin.SE3) -> None:
         self._target = pose.copy()
-        self._target_translation = pose.translation.copy()
-        self._target_rotation = pose.rotation.copy()
+        self._target_homogeneous = pose.homogeneous
 
     def hold(self, robot, q) -> None:
         self.target = robot.data.oMf[self.frame_id]
@@ -189,10 +193,8 @@ class FrameTask(Task):
     def full_error(self, robot, out=None) -> np.ndarray:
         """6-D error [p_target - p; log3(R_target R^T)], world-aligned (m, rad); rotation
         rows 0 when no axis is selected. Written into `out` (6) if given."""
-        current = robot.data.oMf[self.frame_id]
         error = np.empty(6) if out is None else out
-        frame_error(self._target_translation, self._target_rotation, current.translation,
-                    current.rotation, error)
+        frame_error(self._target_homogeneous, robot.data.oMf[self.frame_id].homogeneous, error)
         if not self._needs_rotation:
             error[3:] = 0.0
         return error
