@@ -81,6 +81,7 @@ class PikNode(Node):
         with open(stack_file) as stream:
             self.solver.set_stack(parse_stack_yaml(stream.read(), self.robot.model.existFrame),
                                   self.q)
+        self.solver.warm_up(self.q)   # before any service or cycle: no first-step stall
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.rejected_inputs = 0

@@ -116,7 +116,9 @@ class DampedHierarchy:
                                   np.empty((level_count + 1, nv)))
             level_steps = np.zeros((level_count, nv))
             residuals = np.zeros(level_count)
-            old_fixed, old_values = None, None
+            # empty: a fresh solve (arrays rather than None keep _solve to one compiled
+            # signature, so its first call compiles the restart path too)
+            old_fixed, old_values = np.zeros(0, dtype=np.bool_), np.zeros(0)
         dq = _solve(jacobian, target, offsets, fixed, values, old_fixed, old_values,
                     state.level_bases, state.level_ranks, state.level_starts, level_steps,
                     residuals, self.damping, self.rank_tolerance)
@@ -140,11 +142,12 @@ def stack_levels(levels, nv: int):
 def _solve(jacobian, target, offsets, fixed, values, old_fixed, old_values, level_bases,
            level_ranks, level_starts, level_steps, residuals, damping, rank_tolerance):
     """DampedHierarchy.solve_stacked in one compiled call (one dispatch instead of several):
-    restart from the state of a solution with old_fixed / old_values when they are given and
-    allow it (level_steps and residuals are then that solution's copies), else solve from
-    the first level; arrays filled in place as by _solve_levels. Returns dq."""
+    restart from the state of a solution with old_fixed / old_values when they are given
+    (non-empty) and allow it (level_steps and residuals are then that solution's copies),
+    else solve from the first level; arrays filled in place as by _solve_levels. Returns
+    dq."""
     first = -1
-    if old_fixed is not None:
+    if len(old_fixed):
         first, dq, basis = _restart_point(jacobian, offsets, old_fixed, old_values, fixed,
                                           values, level_bases, level_ranks, level_starts,
                                           level_steps, rank_tolerance)

@@ -205,6 +205,14 @@ class PIKSolver:
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
                           binding_constraints=solution.binding)
 
+    def warm_up(self, q: np.ndarray) -> None:
+        """Compile (or load from numba's disk cache) the step's kernels, including the
+        velocity-saturation path, by one discarded step from q: the first compilation takes
+        about 20 s, which a real-time loop must not pay on its first cycle."""
+        self.step(q)
+        jacobian, target, _ = self._fill_levels(q)
+        _level_residuals(jacobian, target, self._layout.offsets, np.zeros(self.robot.model.nv))
+
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""
         return list(zip(self._layout.priorities, self._layout.level_tasks))
