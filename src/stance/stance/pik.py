@@ -209,9 +209,9 @@ class PIKSolver:
         """Compile (or load from numba's disk cache) the step's kernels, including the
         velocity-saturation path, by one discarded step from q: the first compilation takes
         about 20 s, which a real-time loop must not pay on its first cycle."""
-        self.step(q)
-        jacobian, target, _ = self._fill_levels(q)
-        _level_residuals(jacobian, target, self._layout.offsets, np.zeros(self.robot.model.nv))
+        self.step(q)   # leaves the stacked Jacobian and target filled at q
+        _level_residuals(self._jacobian, self._target, self._layout.offsets,
+                         np.zeros(self.robot.model.nv))
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""

@@ -363,9 +363,9 @@ class PostureGenerator:
                 q, near=settings.collision_near, ignored=ignored)
         else:
             distances, gradients = np.zeros(0), np.zeros((0, nv))
-        volume_rows = len(free.volume.halfspaces()[1]) if free is not None else 0
+        a_volume, b_volume = free.volume.halfspaces() if free is not None else (None, ())
         com_end, collision_end = len(b_com), len(b_com) + len(distances)
-        inequalities = np.zeros((collision_end + volume_rows, n))
+        inequalities = np.zeros((collision_end + len(b_volume), n))
         lower = np.full(len(inequalities), -1e20)
         upper = np.full(len(inequalities), 1e20)
         inequalities[:com_end, :nv] = a_com @ self.data.Jcom[:2]
@@ -374,7 +374,6 @@ class PostureGenerator:
         lower[com_end:collision_end] = np.minimum(settings.collision_margin - distances,
                                                   settings.collision_push)
         if free is not None:
-            a_volume, b_volume = free.volume.halfspaces()
             inequalities[collision_end:, nv:] = a_volume
             upper[collision_end:] = b_volume - a_volume @ v
 
