@@ -203,3 +203,55 @@ def test_rows_out_of_one_steps_reach_give_the_step_toward_them():
                        np.array([2.0]), np.array([np.inf]), -np.ones(2), np.ones(2))
     assert step is not None
     np.testing.assert_allclose(step, [1.0, -0.3], atol=1e-9)
+
+
+def test_a_limit_cycle_of_the_iteration_is_recognised(robot, generator):
+    """Steps that bring q back to where it was two iterations ago without lowering the
+    contact error end the descent; a zigzag that still drifts or still lowers the error
+    does not."""
+    import collections
+
+    rng = np.random.default_rng(3)
+    q0 = robot.initial_configuration()
+    there = rng.uniform(-0.1, 0.1, robot.model.nv)
+    q1 = pin.integrate(robot.model, q0, there)
+    back = pin.integrate(robot.model, q1, -0.99 * there)       # 1 % short of q0
+    onward = pin.integrate(robot.model, q1, there)              # q0 + 2 steps away
+    step = float(np.linalg.norm(there))
+    iterates = collections.deque([q0, q1], maxlen=2)
+    flat, falling = [2e-3, 3e-3, 2e-3], [2e-3, 3e-3, 1.5e-3]
+    assert generator._cycling(iterates, back, step, flat)
+    assert not generator._cycling(iterates, onward, step, flat)
+    assert not generator._cycling(iterates, back, step, falling)
+
+
+def contact_error(generator, scene, contacts, q):
+    """Largest contact error component (m or rad), as the generator measures it."""
+    largest = 0.0
+    for contact in contacts:
+        target = contact.spot_target(scene.surfaces[contact.surface])
+        achieved = spot_pose(generator, q, contact.spot)
+        rotation = pin.log3(target.rotation @ achieved.rotation.T)
+        largest = max(largest, np.abs(target.translation - achieved.translation).max(),
+                      np.abs(rotation).max())
+    return largest
+
+
+def test_contacts_within_tolerance_end_the_descent_once_the_step_is_small(robot, scene):
+    """A criterion pulling against the contacts (quadratic penalties) leaves a contact error
+    floor. Inside the tolerance but above half of it, the call ends once the step is small
+    instead of running to max_iterations, and succeeds."""
+    contacts = (sole_contact(robot, scene, "left_sole"),
+                sole_contact(robot, scene, "right_sole", dx=0.1))
+    q0 = robot.initial_configuration()
+    reference = q0.copy()
+    reference[7:] += 0.2                   # every joint 0.2 rad off: a pull on the soles
+    criterion = ReferencePosture(robot.model, reference, 0.1)
+    floor_run = PostureGenerator(robot, scene, settings=PostureSettings(contact_tolerance=1e-12))
+    floor = contact_error(floor_run, scene, contacts,
+                          floor_run.generate(contacts, q0, criterion).q)
+    settings = PostureSettings(contact_tolerance=1.5 * floor)
+    result = PostureGenerator(robot, scene, settings=settings).generate(contacts, q0, criterion)
+    assert result.success, result.reason
+    assert 0.5 * settings.contact_tolerance < contact_error(floor_run, scene, contacts, result.q)
+    assert result.iterations < settings.max_iterations / 2

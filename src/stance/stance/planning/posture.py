@@ -29,6 +29,7 @@ Frames: world frame, m, rad. Contact rows are world-aligned at the spot frame's 
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from dataclasses import dataclass, field
@@ -52,6 +53,11 @@ GRAVITY = 9.81  # m/s^2
 # GUIDE_PROGRESS over the last GUIDE_WINDOW iterations.
 GUIDE_PROGRESS = 1e-4
 GUIDE_WINDOW = 3
+# The iteration is cycling when a step returns q closer than CYCLE_RETURN times its length to
+# the iterate of two iterations ago while the contact error stays above CYCLE_PROGRESS of its
+# value then (PostureGenerator._cycling).
+CYCLE_RETURN = 0.05
+CYCLE_PROGRESS = 0.99
 
 
 @dataclass
@@ -220,12 +226,16 @@ class PostureGenerator:
                              time.thread_time() - cpu_start)
 
     def _descend(self, q, contacts, free, v, stability, criterion, ignored, deadline):
-        """Iterate from q until converged, stalled, max_iterations or the deadline
+        """Iterate from q until converged, stalled, cycling, max_iterations or the deadline
         (perf_counter s); returns (q, v, iterations). Converged: the contacts within their
-        tolerance and either the step below converged_step or the guides no longer
+        tolerance and the step below converged_step (the contacts are quadratic penalties
+        balanced against the criterion, so the error can settle on a floor inside the
+        tolerance), or the contacts within half their tolerance and the guides no longer
         approaching their targets (by GUIDE_PROGRESS over GUIDE_WINDOW iterations)."""
         iterations = 0
         errors, guide_errors = [], []
+        iterates = collections.deque(maxlen=2)  # the iterates of the last two iterations
+        tolerance = self.settings.contact_tolerance
         for iterations in range(1, self.settings.max_iterations + 1):
             if time.perf_counter() > deadline:
                 break
@@ -233,16 +243,17 @@ class PostureGenerator:
                                                                criterion, ignored)
             errors.append(contact_error)
             guide_errors.append(guide_error)
+            iterates.append(q)
             q = self._clip_to_limits(pin.integrate(self.model, q, dq))
             if free is not None:
                 v = v + dv
             step = math.sqrt(dq @ dq + (dv @ dv if dv is not None else 0.0))
             guides_settled = len(guide_errors) > GUIDE_WINDOW and \
                 guide_errors[-1 - GUIDE_WINDOW] - guide_errors[-1] < GUIDE_PROGRESS
-            if contact_error < 0.5 * self.settings.contact_tolerance and \
-                    (step < self.settings.converged_step or guides_settled):
+            if contact_error < tolerance and step < self.settings.converged_step or \
+                    contact_error < 0.5 * tolerance and guides_settled:
                 break
-            if self._stalled(errors):
+            if self._stalled(errors) or self._cycling(iterates, q, step, errors):
                 break
         return q, v, iterations
 
@@ -253,6 +264,17 @@ class PostureGenerator:
         if len(errors) <= window or errors[-1] < 100 * self.settings.contact_tolerance:
             return False
         return errors[-1] > 0.5 * errors[-1 - window]
+
+    def _cycling(self, iterates, q, step, errors) -> bool:
+        """The last step brought q back near the iterate of two iterations ago (closer than
+        CYCLE_RETURN times the step's length, tangent norm) and the contact error did not
+        fall below CYCLE_PROGRESS of its value then: the linearised steps alternate between
+        two configurations (e.g. two sets of active collision rows), and more iterations
+        would repeat them."""
+        if len(iterates) < 2 or len(errors) < 3 or errors[-1] < CYCLE_PROGRESS * errors[-3]:
+            return False
+        back = pin.difference(self.model, iterates[0], q)
+        return math.sqrt(back @ back) < CYCLE_RETURN * step
 
     # ----------------------------------------------------------------- model pieces
     def _kinematics(self, q):
