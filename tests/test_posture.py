@@ -206,23 +206,31 @@ def test_rows_out_of_one_steps_reach_give_the_step_toward_them():
 
 
 def test_a_limit_cycle_of_the_iteration_is_recognised(robot, generator):
-    """Steps that bring q back to where it was two iterations ago without lowering the
-    contact error end the descent; a zigzag that still drifts or still lowers the error
+    """Steps that bring q back to where it was two or three iterations ago without lowering
+    the contact error end the descent; a zigzag that still drifts or still lowers the error
     does not."""
     import collections
 
     rng = np.random.default_rng(3)
     q0 = robot.initial_configuration()
-    there = rng.uniform(-0.1, 0.1, robot.model.nv)
+    there, aside = rng.uniform(-0.1, 0.1, (2, robot.model.nv))
     q1 = pin.integrate(robot.model, q0, there)
     back = pin.integrate(robot.model, q1, -0.99 * there)       # 1 % short of q0
     onward = pin.integrate(robot.model, q1, there)              # q0 + 2 steps away
     step = float(np.linalg.norm(there))
-    iterates = collections.deque([q0, q1], maxlen=2)
     flat, falling = [2e-3, 3e-3, 2e-3], [2e-3, 3e-3, 1.5e-3]
-    assert generator._cycling(iterates, back, step, flat)
-    assert not generator._cycling(iterates, onward, step, flat)
-    assert not generator._cycling(iterates, back, step, falling)
+    two = collections.deque([q0, q1], maxlen=3)
+    assert generator._cycling(two, back, step, flat)
+    assert not generator._cycling(two, onward, step, flat)
+    assert not generator._cycling(two, back, step, falling)
+    # q0 -> q1 -> q2 -> back near q0
+    q2 = pin.integrate(robot.model, q1, aside)
+    three = collections.deque([q0, q1, q2], maxlen=3)
+    closing = pin.difference(robot.model, q2, q0)
+    around = pin.integrate(robot.model, q2, 0.99 * closing)
+    assert generator._cycling(three, around, float(np.linalg.norm(closing)), [2e-3] + flat)
+    assert not generator._cycling(three, around, float(np.linalg.norm(closing)),
+                                  [2e-3] + falling)
 
 
 def contact_error(generator, scene, contacts, q):

@@ -54,8 +54,9 @@ GRAVITY = 9.81  # m/s^2
 GUIDE_PROGRESS = 1e-4
 GUIDE_WINDOW = 3
 # The iteration is cycling when a step returns q closer than CYCLE_RETURN times its length to
-# the iterate of two iterations ago while the contact error stays above CYCLE_PROGRESS of its
-# value then (PostureGenerator._cycling).
+# the iterate of CYCLE_PERIODS iterations ago while the contact error stays above
+# CYCLE_PROGRESS of its value then (PostureGenerator._cycling).
+CYCLE_PERIODS = (2, 3)
 CYCLE_RETURN = 0.05
 CYCLE_PROGRESS = 0.99
 
@@ -234,7 +235,7 @@ class PostureGenerator:
         approaching their targets (by GUIDE_PROGRESS over GUIDE_WINDOW iterations)."""
         iterations = 0
         errors, guide_errors = [], []
-        iterates = collections.deque(maxlen=2)  # the iterates of the last two iterations
+        iterates = collections.deque(maxlen=CYCLE_PERIODS[-1])  # the last iterates
         tolerance = self.settings.contact_tolerance
         for iterations in range(1, self.settings.max_iterations + 1):
             if time.perf_counter() > deadline:
@@ -266,15 +267,20 @@ class PostureGenerator:
         return errors[-1] > 0.5 * errors[-1 - window]
 
     def _cycling(self, iterates, q, step, errors) -> bool:
-        """The last step brought q back near the iterate of two iterations ago (closer than
-        CYCLE_RETURN times the step's length, tangent norm) and the contact error did not
-        fall below CYCLE_PROGRESS of its value then: the linearised steps alternate between
-        two configurations (e.g. two sets of active collision rows), and more iterations
-        would repeat them."""
-        if len(iterates) < 2 or len(errors) < 3 or errors[-1] < CYCLE_PROGRESS * errors[-3]:
-            return False
-        back = pin.difference(self.model, iterates[0], q)
-        return math.sqrt(back @ back) < CYCLE_RETURN * step
+        """The last step brought q back near the iterate of two or three iterations ago
+        (closer than CYCLE_RETURN times the step's length, tangent norm) and the contact
+        error did not fall below CYCLE_PROGRESS of its value then: the linearised steps
+        cycle through two or three configurations (e.g. sets of active collision rows),
+        and more iterations would repeat them. iterates: the last CYCLE_PERIODS[-1]
+        iterates, oldest first."""
+        for period in CYCLE_PERIODS:
+            if len(iterates) < period or len(errors) <= period or \
+                    errors[-1] < CYCLE_PROGRESS * errors[-1 - period]:
+                continue
+            back = pin.difference(self.model, iterates[-period], q)
+            if math.sqrt(back @ back) < CYCLE_RETURN * step:
+                return True
+        return False
 
     # ----------------------------------------------------------------- model pieces
     def _kinematics(self, q):
