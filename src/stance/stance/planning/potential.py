@@ -30,10 +30,10 @@ from it), so the slope drives the search while the valley keeps postures near T.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import pinocchio as pin
 
@@ -103,15 +103,6 @@ class _Segment:
     def tangent_at(self, u: float) -> np.ndarray:
         return self.direction
 
-    def closest(self, point: np.ndarray) -> tuple:
-        """(u, closest point, du/dpoint): u the arc length from the start (m); du/dpoint
-        is zero beyond the ends, one-sided at them."""
-        u = float((point - self.start) @ self.direction)
-        if u < 0.0 or u > self.length:
-            u = min(max(u, 0.0), self.length)
-            return u, self.point_at(u), np.zeros(6)
-        return u, self.point_at(u), self.direction.copy()
-
 
 @dataclass(frozen=True)
 class _Arc:
@@ -128,14 +119,6 @@ class _Arc:
     q_start: np.ndarray
     q_end: np.ndarray
 
-    @functools.cached_property
-    def start(self) -> np.ndarray:
-        return self.point_at(0.0)
-
-    @functools.cached_property
-    def end(self) -> np.ndarray:
-        return self.point_at(self.length)
-
     def point_at(self, u: float) -> np.ndarray:
         a = u / self.radius
         return self.center + self.radius * (math.cos(a) * self.e1 + math.sin(a) * self.e2)
@@ -143,20 +126,6 @@ class _Arc:
     def tangent_at(self, u: float) -> np.ndarray:
         a = u / self.radius
         return -math.sin(a) * self.e1 + math.cos(a) * self.e2
-
-    def closest(self, point: np.ndarray) -> tuple:
-        """(u, closest point, du/dpoint): u the arc length from the start (m); du/dpoint
-        is zero beyond the ends, one-sided at them."""
-        offset = point - self.center
-        w1, w2 = float(offset @ self.e1), float(offset @ self.e2)
-        in_plane = math.hypot(w1, w2)
-        a = math.atan2(w2, w1)
-        if in_plane == 0.0 or not 0.0 <= a <= self.angle:
-            u, end = min(((0.0, self.start), (self.length, self.end)),
-                         key=lambda candidate: _distance(point, candidate[1]))
-            return u, end, np.zeros(6)
-        u = a * self.radius
-        return u, self.point_at(u), (self.radius / in_plane) * self.tangent_at(u)
 
 
 class RoughTrajectory:
@@ -195,6 +164,7 @@ class RoughTrajectory:
         if len(kept) < 2:
             raise ValueError("the key postures' bases all coincide: T' has no length")
         self._pieces = self._build_pieces(points[kept], key_postures[kept])
+        self._piece_arrays = _piece_arrays(self._pieces)
         last = self._pieces[-1]
         self.length = last.s_start + last.length
         self._s_of_key_postures = np.array([self.project(q).s for q in key_postures])
@@ -225,13 +195,9 @@ class RoughTrajectory:
     def project(self, q: np.ndarray) -> Projection:
         """Closest point Q' of T' to p(q), its abscissa s' and Q = p^{-1}(Q')."""
         point = self.free_flyer_point(q)
-        best = None
-        for piece in self._pieces:
-            u, closest, du = piece.closest(point)
-            distance = _distance(point, closest)
-            if best is None or distance < best[0]:
-                best = (distance, piece, u, closest, du)
-        distance, piece, u, closest, du = best
+        index, u, closest, du = _closest_on_pieces(point, *self._piece_arrays)
+        piece = self._pieces[index]
+        distance = _distance(point, closest)
         Q = self._configuration(piece, u, closest)
         # Joints: pin.interpolate moves at a constant tangent velocity along the piece. Base:
         # the F tangent mapped to the local twist (inverse of the chart's derivative).
@@ -316,6 +282,73 @@ class RoughTrajectory:
                     posture_on_segment(j + 1, tangent_length)))
                 s += radius * turn
         return pieces
+
+
+def _piece_arrays(pieces) -> tuple:
+    """The pieces of T' as arrays for _closest_on_pieces: is_arc (P,), length (P,),
+    origin (P, 6) (a segment's start, an arc's centre), axis (P, 6) (a segment's direction,
+    an arc's e2), e1 (P, 6) (zero for segments), radius (P,), angle (P,)."""
+    arcs = [isinstance(piece, _Arc) for piece in pieces]
+    zero = np.zeros(6)
+    return (np.array(arcs),
+            np.array([piece.length for piece in pieces]),
+            np.array([piece.center if arc else piece.start for piece, arc in zip(pieces, arcs)]),
+            np.array([piece.e2 if arc else piece.direction for piece, arc in zip(pieces, arcs)]),
+            np.array([piece.e1 if arc else zero for piece, arc in zip(pieces, arcs)]),
+            np.array([piece.radius if arc else 0.0 for piece, arc in zip(pieces, arcs)]),
+            np.array([piece.angle if arc else 0.0 for piece, arc in zip(pieces, arcs)]))
+
+
+@numba.njit(cache=True)
+def _closest_on_pieces(point, is_arc, length, origin, axis, e1, radius, angle):
+    """(piece index, u, closest point (6), du/dpoint (6)) of the piece of T' closest to
+    `point` (the first one on ties): u the arc length from the piece's start (m), du/dpoint
+    zero beyond a piece's ends, one-sided at them. Arrays: _piece_arrays."""
+    best_distance, best = np.inf, (0, 0.0, np.zeros(6), np.zeros(6))
+    for k in range(len(length)):
+        closest, du = np.empty(6), np.zeros(6)
+        if not is_arc[k]:
+            u = 0.0
+            for i in range(6):
+                u += (point[i] - origin[k, i]) * axis[k, i]
+            inside = 0.0 <= u <= length[k]
+            u = min(max(u, 0.0), length[k])
+            for i in range(6):
+                closest[i] = origin[k, i] + u * axis[k, i]
+                if inside:
+                    du[i] = axis[k, i]
+        else:
+            w1 = w2 = 0.0
+            for i in range(6):
+                w1 += (point[i] - origin[k, i]) * e1[k, i]
+                w2 += (point[i] - origin[k, i]) * axis[k, i]
+            in_plane = math.hypot(w1, w2)
+            a = math.atan2(w2, w1)
+            inside = in_plane != 0.0 and 0.0 <= a <= angle[k]
+            if inside:
+                u = a * radius[k]
+            else:                           # the nearer end (the start on ties)
+                gaps = np.zeros(2)
+                for end in range(2):
+                    phase = end * length[k] / radius[k]
+                    for i in range(6):
+                        gap = point[i] - origin[k, i] - radius[k] * (
+                            math.cos(phase) * e1[k, i] + math.sin(phase) * axis[k, i])
+                        gaps[end] += gap * gap
+                u = length[k] if gaps[1] < gaps[0] else 0.0
+            phase = u / radius[k]
+            for i in range(6):
+                closest[i] = origin[k, i] + radius[k] * (
+                    math.cos(phase) * e1[k, i] + math.sin(phase) * axis[k, i])
+                if inside:
+                    du[i] = radius[k] / in_plane * (
+                        -math.sin(phase) * e1[k, i] + math.cos(phase) * axis[k, i])
+        distance = 0.0
+        for i in range(6):
+            distance += (point[i] - closest[i]) ** 2
+        if distance < best_distance:
+            best_distance, best = distance, (k, u, closest, du)
+    return best
 
 
 def _distance(a: np.ndarray, b: np.ndarray) -> float:
