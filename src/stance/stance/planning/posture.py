@@ -70,7 +70,7 @@ class PostureSettings:
     damping: float = 1e-2                # per rad^2 (or m^2) of dq
     criterion_weight: float = 1.0        # scales the criterion's quadratic model
     trust_joint: float = 0.25            # rad: largest |dq| of a joint per iteration
-    trust_base: float = 0.08             # m or rad: largest |dq| of the base per iteration
+    trust_base: float = 0.25             # m or rad: largest |dq| of the base per iteration
     collision_margin: float = 0.005      # m: clearance required between bodies
     collision_near: float = 0.05         # m: pairs closer than this enter the QP
     collision_push: float = 0.02         # m: largest clearance gain asked per iteration
