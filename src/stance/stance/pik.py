@@ -29,7 +29,7 @@ import pinocchio as pin
 
 from .hierarchy import DampedHierarchy
 from .limits import RevoluteLimits, make_strategy
-from .stack import StackError, parse_stack_yaml, validate_stack
+from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
 from .tasks import ComTask, capped_steps, make_task, step_cap_groups
 
 
@@ -60,8 +60,8 @@ class StepResult:
 class _Layout:
     """Row layout of the enabled tasks, rebuilt when the stack or an enable flag changes."""
 
-    tasks: list                 # (task, its Jacobian rows, its error rows, sqrt(weight)) in
-    #                             priority order: views of the solver's stacked arrays
+    tasks: list                 # (task, its Jacobian rows, its error rows) in priority
+    #                             order: views of the solver's stacked arrays
     priorities: list
     level_tasks: list
     offsets: np.ndarray         # level row offsets (levels + 1)
@@ -212,6 +212,10 @@ class PIKSolver:
         self.step(q)   # leaves the stacked Jacobian and target filled at q
         _level_residuals(self._jacobian, self._target, self._layout.offsets,
                          np.zeros(self.robot.model.nv))
+        robot = self.robot  # the task kinds' kernels, for a later stack that needs them
+        for spec in (TaskSpec("com", "com"),
+                     TaskSpec("frame", "pose", frame=robot.model.frames[-1].name)):
+            make_task(spec, robot).jacobian_and_error(robot, q)
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""
@@ -242,7 +246,7 @@ class PIKSolver:
             level_tasks[-1].append(task.name)
             scale = float(np.sqrt(task.weight))
             rows = slice(row, row + task.dimension)
-            placed.append((task, jacobian[rows], error[rows], scale))
+            placed.append((task, jacobian[rows], error[rows]))
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
@@ -258,12 +262,10 @@ class PIKSolver:
         (Jacobian and target rows scaled by sqrt(weight))."""
         jacobian, target, error = self._jacobian, self._target, self._error
         layout, robot = self._layout, self.robot
-        for task, task_jacobian, task_error, scale in layout.tasks:
+        for task, task_jacobian, task_error in layout.tasks:
             task.write(robot, q, task_jacobian, task_error)
-            if scale != 1.0:
-                task_jacobian *= scale
-        capped_steps(error, layout.row_gain, layout.row_group, layout.group_cap,
-                     layout.row_scale, target)
+        _weighted_rows(jacobian, error, layout.row_gain, layout.row_group, layout.group_cap,
+                       layout.row_scale, target)
         return jacobian, target, error
 
     def _reports(self, q, error, step_residuals):
@@ -328,6 +330,17 @@ def _velocity_saturation(dq, fixed_dq, level_steps, by_level, speed_index, inver
             return saturated + fraction * level_step, fraction
         saturated += level_step
     return saturated, 1.0
+
+
+@numba.njit(cache=True)
+def _weighted_rows(jacobian, error, gain, group, cap, scale, target):
+    """Scale the stacked Jacobian's rows by sqrt(weight) `scale` in place and write the
+    scaled, capped steps of `error` into target (capped_steps)."""
+    for row in range(len(scale)):
+        if scale[row] != 1.0:
+            for column in range(jacobian.shape[1]):
+                jacobian[row, column] *= scale[row]
+    capped_steps(error, gain, group, cap, scale, target)
 
 
 @numba.njit(cache=True)

@@ -113,6 +113,44 @@ def frame_error(target, current, out):
         out[3:] = angle / _length(axis) * axis
 
 
+@numba.njit(cache=True)
+def frame_rows(world_jacobian, support, current, target, rows, jacobian, error):
+    """Rows `rows` (indices into x, y, z, rx, ry, rz) of a frame task, written into
+    jacobian (len(rows) x nv) and error (len(rows)): the frame's Jacobian in
+    LOCAL_WORLD_ALIGNED, from the joint Jacobians `world_jacobian` (6 x nv, Pinocchio's
+    data.J in the WORLD frame) on the `support` DoFs (those moving the frame; the other
+    columns are zero), and frame_error(target, current) (4x4 poses). Same arithmetic as
+    pinocchio.getFrameJacobian: linear = v - p x omega at the frame origin p."""
+    full_error = np.empty(6)
+    frame_error(target, current, full_error)
+    for k in range(len(rows)):
+        error[k] = full_error[rows[k]]
+    jacobian[:] = 0.0
+    px, py, pz = current[0, 3], current[1, 3], current[2, 3]
+    for column in support:
+        wx, wy, wz = world_jacobian[3, column], world_jacobian[4, column], \
+            world_jacobian[5, column]
+        for k in range(len(rows)):
+            axis = rows[k]
+            if axis == 0:
+                jacobian[k, column] = world_jacobian[0, column] - (py * wz - pz * wy)
+            elif axis == 1:
+                jacobian[k, column] = world_jacobian[1, column] - (pz * wx - px * wz)
+            elif axis == 2:
+                jacobian[k, column] = world_jacobian[2, column] - (px * wy - py * wx)
+            else:
+                jacobian[k, column] = world_jacobian[axis, column]
+
+
+@numba.njit(cache=True)
+def selected_rows(full_jacobian, target, current, rows, jacobian, error):
+    """jacobian[k] = full_jacobian[rows[k]], error[k] = target[rows[k]] - current[rows[k]]
+    (one compiled call instead of several numpy ones)."""
+    for k in range(len(rows)):
+        jacobian[k] = full_jacobian[rows[k]]
+        error[k] = target[rows[k]] - current[rows[k]]
+
+
 class Task:
     """Base class. Subclasses set `self.rows` (selected row indices) and implement
     `write(robot, q, jacobian, error)` on kinematics already computed in robot.data."""
@@ -166,9 +204,8 @@ class FrameTask(Task):
     def __init__(self, spec: TaskSpec, robot):
         super().__init__(spec, robot)
         self.frame_id = robot.frame_id(spec.frame)
-        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()], dtype=int)
-        self._all_rows = len(self.rows) == 6
-        self._needs_rotation = bool(np.any(self.rows >= 3))
+        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()],
+                             dtype=np.int64)
         self._linear = np.flatnonzero(self.rows < 3)
         self._angular = np.flatnonzero(self.rows >= 3)
         self.target = pin.SE3.Identity()
@@ -190,24 +227,13 @@ class FrameTask(Task):
         require_finite(pose.homogeneous, f"target of task {self.name!r}")
         self.target = pose
 
-    def full_error(self, robot, out=None) -> np.ndarray:
-        """6-D error [p_target - p; log3(R_target R^T)], world-aligned (m, rad); rotation
-        rows 0 when no axis is selected. Written into `out` (6) if given."""
-        error = np.empty(6) if out is None else out
-        frame_error(self._target_homogeneous, robot.data.oMf[self.frame_id].homogeneous, error)
-        if not self._needs_rotation:
-            error[3:] = 0.0
-        return error
-
     def write(self, robot, q, jacobian, error) -> None:
-        frame_jacobian = pin.getFrameJacobian(robot.model, robot.data, self.frame_id,
-                                              pin.LOCAL_WORLD_ALIGNED)
-        if self._all_rows:
-            jacobian[:] = frame_jacobian
-            self.full_error(robot, error)
-        else:
-            jacobian[:] = frame_jacobian[self.rows]
-            error[:] = self.full_error(robot)[self.rows]
+        """Selected rows of [p_target - p; log3(R_target R^T)] (m, rad) and of the frame
+        Jacobian, world-aligned at the frame origin (jacobian and error C-contiguous)."""
+        data = robot.data
+        frame_rows(data.J, robot.frame_supports[self.frame_id],
+                   data.oMf[self.frame_id].homogeneous,
+                   self._target_homogeneous, self.rows, jacobian, error)
 
     def step_caps(self) -> list:
         """Translation and rotation rows capped separately (m and rad per step)."""
@@ -241,7 +267,8 @@ class ComTask(Task):
 
     def __init__(self, spec: TaskSpec, robot):
         super().__init__(spec, robot)
-        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()], dtype=int)
+        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()],
+                             dtype=np.int64)
         self.target = np.zeros(3)
 
     def hold(self, robot, q) -> None:
@@ -254,8 +281,8 @@ class ComTask(Task):
         self.target = position.copy()
 
     def write(self, robot, q, jacobian, error) -> None:
-        jacobian[:] = robot.data.Jcom[self.rows]
-        error[:] = (self.target - robot.data.com[0])[self.rows]
+        data = robot.data
+        selected_rows(data.Jcom, self.target, data.com[0], self.rows, jacobian, error)
 
     def current_pose(self, robot):
         return pin.SE3(np.eye(3), robot.data.com[0].copy())
