@@ -182,12 +182,7 @@ class PIKSolver:
             iterations += 1
             changed = False
             for model in self.limit_models:
-                decision = self.strategy.decide(model, q, solution.dq, ~fixed)
-                if len(decision.index):
-                    fixed[decision.index] = True
-                    fixed_dq[decision.index] = decision.dq
-                    h[decision.index] = decision.h
-                    changed = True
+                changed |= self.strategy.fix(model, q, solution.dq, fixed, fixed_dq, h)
             if not changed:
                 break
 
@@ -209,13 +204,14 @@ class PIKSolver:
         """Compile (or load from numba's disk cache) the step's kernels, including the
         velocity-saturation path, by one discarded step from q: the first compilation takes
         about 20 s, which a real-time loop must not pay on its first cycle."""
+        robot, nv = self.robot, self.robot.model.nv
         self.step(q)   # leaves the stacked Jacobian and target filled at q
-        _level_residuals(self._jacobian, self._target, self._layout.offsets,
-                         np.zeros(self.robot.model.nv))
-        robot = self.robot  # the task kinds' kernels, for a later stack that needs them
+        _level_residuals(self._jacobian, self._target, self._layout.offsets, np.zeros(nv))
+        # kernels a later stack or strategy may need: the task kinds', the limit decision's
         for spec in (TaskSpec("com", "com"),
                      TaskSpec("frame", "pose", frame=robot.model.frames[-1].name)):
             make_task(spec, robot).jacobian_and_error(robot, q)
+        self.limits.decide(q, np.zeros(nv), np.ones(nv, dtype=bool), True)
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""
