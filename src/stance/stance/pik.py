@@ -30,7 +30,8 @@ import pinocchio as pin
 from .hierarchy import DampedHierarchy
 from .limits import RevoluteLimits, make_strategy
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
-from .tasks import ComTask, capped_steps, make_task, step_cap_groups
+from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
+                    step_cap_groups)
 
 
 @dataclass
@@ -60,8 +61,10 @@ class StepResult:
 class _Layout:
     """Row layout of the enabled tasks, rebuilt when the stack or an enable flag changes."""
 
-    tasks: list                 # (task, its Jacobian rows, its error rows) in priority
-    #                             order: views of the solver's stacked arrays
+    task_names: list            # in priority order
+    frame_tasks: FrameTaskBatch  # frame tasks, written in one call
+    other_tasks: list           # (task, its Jacobian rows, its error rows) for the others:
+    #                             views of the solver's stacked arrays
     priorities: list
     level_tasks: list
     offsets: np.ndarray         # level row offsets (levels + 1)
@@ -207,11 +210,12 @@ class PIKSolver:
         robot, nv = self.robot, self.robot.model.nv
         self.step(q)   # leaves the stacked Jacobian and target filled at q
         _level_residuals(self._jacobian, self._target, self._layout.offsets, np.zeros(nv))
-        # kernels a later stack or strategy may need: the task kinds', the limit decision's
+        # kernels a later stack or strategy may need: the task kinds', the joint limits'
         for spec in (TaskSpec("com", "com"),
                      TaskSpec("frame", "pose", frame=robot.model.frames[-1].name)):
             make_task(spec, robot).jacobian_and_error(robot, q)
         self.limits.decide(q, np.zeros(nv), np.ones(nv, dtype=bool), True)
+        self.limits.keep_inside(q, q.copy())
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""
@@ -230,7 +234,7 @@ class PIKSolver:
         jacobian = self._jacobian = np.zeros((row_count, self.robot.model.nv))
         error = self._error = np.zeros(row_count)
         self._target = np.zeros(row_count)
-        placed, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
+        others, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
         gains = []
         row = 0
         for task in enabled:
@@ -241,15 +245,20 @@ class PIKSolver:
                 level_tasks.append([])
             level_tasks[-1].append(task.name)
             scale = float(np.sqrt(task.weight))
-            rows = slice(row, row + task.dimension)
-            placed.append((task, jacobian[rows], error[rows]))
+            if not isinstance(task, FrameTask):
+                rows = slice(row, row + task.dimension)
+                others.append((task, jacobian[rows], error[rows]))
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
             row += task.dimension
         if priorities:
             offsets.append(row)
-        return _Layout(placed, priorities, level_tasks, np.array(offsets, dtype=np.int64),
+        frames = [index for index, task in enumerate(enabled) if isinstance(task, FrameTask)]
+        return _Layout([task.name for task in enabled],
+                       FrameTaskBatch(self.robot, [enabled[index] for index in frames],
+                                      [starts[index] for index in frames]),
+                       others, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
                        *step_cap_groups(enabled))
 
@@ -258,7 +267,8 @@ class PIKSolver:
         (Jacobian and target rows scaled by sqrt(weight))."""
         jacobian, target, error = self._jacobian, self._target, self._error
         layout, robot = self._layout, self.robot
-        for task, task_jacobian, task_error in layout.tasks:
+        layout.frame_tasks.write(robot, jacobian, error)
+        for task, task_jacobian, task_error in layout.other_tasks:
             task.write(robot, q, task_jacobian, task_error)
         _weighted_rows(jacobian, error, layout.row_gain, layout.row_group, layout.group_cap,
                        layout.row_scale, target)
@@ -268,8 +278,8 @@ class PIKSolver:
         layout = self._layout
         task_norms, level_norms = _error_norms(error, layout.task_starts, layout.offsets,
                                                layout.row_scale)
-        task_errors = {task.name: norm  # tolist: Python floats without one call per value
-                       for (task, *_), norm in zip(layout.tasks, task_norms.tolist())}
+        # tolist: Python floats without one call per value
+        task_errors = dict(zip(layout.task_names, task_norms.tolist()))
         levels = [LevelReport(*report) for report in zip(
             layout.priorities, layout.level_tasks, level_norms.tolist(),
             np.asarray(step_residuals, dtype=float).tolist())]

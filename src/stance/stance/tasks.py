@@ -143,6 +143,20 @@ def frame_rows(world_jacobian, support, current, target, rows, jacobian, error):
 
 
 @numba.njit(cache=True)
+def _frame_batch_rows(world_jacobian, poses, supports, support_starts, axes, axis_starts,
+                      first_rows, jacobian, error):
+    """frame_rows for n frame tasks in one call: task i with poses[i] = [current, target]
+    (2 x 4 x 4), support DoFs supports[support_starts[i]:support_starts[i + 1]] and axes
+    axes[axis_starts[i]:axis_starts[i + 1]] writes the rows of jacobian and error that
+    start at first_rows[i]."""
+    for i in range(len(first_rows)):
+        rows = slice(first_rows[i], first_rows[i] + axis_starts[i + 1] - axis_starts[i])
+        frame_rows(world_jacobian, supports[support_starts[i]:support_starts[i + 1]],
+                   poses[i, 0], poses[i, 1], axes[axis_starts[i]:axis_starts[i + 1]],
+                   jacobian[rows], error[rows])
+
+
+@numba.njit(cache=True)
 def selected_rows(full_jacobian, target, current, rows, jacobian, error):
     """jacobian[k] = full_jacobian[rows[k]], error[k] = target[rows[k]] - current[rows[k]]
     (one compiled call instead of several numpy ones)."""
@@ -206,6 +220,7 @@ class FrameTask(Task):
         self.frame_id = robot.frame_id(spec.frame)
         self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()],
                              dtype=np.int64)
+        self._needs_rotation = bool(np.any(self.rows >= 3))
         self._linear = np.flatnonzero(self.rows < 3)
         self._angular = np.flatnonzero(self.rows >= 3)
         self.target = pin.SE3.Identity()
@@ -226,6 +241,15 @@ class FrameTask(Task):
     def set_target(self, pose: pin.SE3) -> None:
         require_finite(pose.homogeneous, f"target of task {self.name!r}")
         self.target = pose
+
+    def full_error(self, robot, out=None) -> np.ndarray:
+        """6-D error [p_target - p; log3(R_target R^T)], world-aligned (m, rad); rotation
+        rows 0 when no axis is selected. Written into `out` (6) if given."""
+        error = np.empty(6) if out is None else out
+        frame_error(self._target_homogeneous, robot.data.oMf[self.frame_id].homogeneous, error)
+        if not self._needs_rotation:
+            error[3:] = 0.0
+        return error
 
     def write(self, robot, q, jacobian, error) -> None:
         """Selected rows of [p_target - p; log3(R_target R^T)] (m, rad) and of the frame
@@ -258,6 +282,38 @@ class PositionTask(FrameTask):
 
 class OrientationTask(FrameTask):
     """Frame orientation (axes rx, ry, rz); the target's translation is ignored."""
+
+
+class FrameTaskBatch:
+    """Frame tasks whose rows lie in one stacked Jacobian and error, written together by
+    one compiled call (FrameTask.write's arithmetic) instead of one call per task.
+
+    tasks: the frame tasks; first_rows: the stacked row of each task's first selected axis.
+    """
+
+    def __init__(self, robot, tasks, first_rows):
+        self.tasks = list(tasks)
+        self._frame_ids = [task.frame_id for task in self.tasks]
+        supports = [robot.frame_supports[frame_id] for frame_id in self._frame_ids]
+        self._supports = np.concatenate([np.zeros(0, dtype=np.int64), *supports])
+        self._support_starts = np.cumsum([0, *map(len, supports)]).astype(np.int64)
+        self._axes = np.concatenate([np.zeros(0, dtype=np.int64),
+                                     *(task.rows for task in self.tasks)])
+        self._axis_starts = np.cumsum([0, *(task.dimension for task in self.tasks)]
+                                      ).astype(np.int64)
+        self._first_rows = np.array(first_rows, dtype=np.int64)
+        self._poses = np.zeros((len(self.tasks), 2, 4, 4))
+
+    def write(self, robot, jacobian, error) -> None:
+        """Write the tasks' rows (kinematics already in robot.data) into the stacked
+        jacobian and error."""
+        data = robot.data
+        placements, poses = data.oMf, self._poses
+        for index, (task, frame_id) in enumerate(zip(self.tasks, self._frame_ids)):
+            poses[index, 0] = placements[frame_id].homogeneous
+            poses[index, 1] = task._target_homogeneous
+        _frame_batch_rows(data.J, poses, self._supports, self._support_starts, self._axes,
+                          self._axis_starts, self._first_rows, jacobian, error)
 
 
 class ComTask(Task):
