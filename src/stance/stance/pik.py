@@ -62,6 +62,7 @@ class _Layout:
     """Row layout of the enabled tasks, rebuilt when the stack or an enable flag changes."""
 
     task_names: list            # in priority order
+    disabled_tasks: list        # reported, not solved
     frame_tasks: FrameTaskBatch  # frame tasks, written in one call
     other_tasks: list           # (task, its Jacobian rows, its error rows) for the others:
     #                             views of the solver's stacked arrays
@@ -73,6 +74,7 @@ class _Layout:
     row_gain: np.ndarray        # task gain per row
     row_group: np.ndarray       # step cap group per row (Task.step_caps)
     group_cap: np.ndarray       # norm cap per group (task units per step)
+    error_norms: np.ndarray     # filled per step: |e| per task, then |sqrt(w) e| per level
 
 
 class PIKSolver:
@@ -256,11 +258,12 @@ class PIKSolver:
             offsets.append(row)
         frames = [index for index, task in enumerate(enabled) if isinstance(task, FrameTask)]
         return _Layout([task.name for task in enabled],
+                       [task for task in self.tasks.values() if not task.enabled],
                        FrameTaskBatch(self.robot, [enabled[index] for index in frames],
                                       [starts[index] for index in frames]),
                        others, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
-                       *step_cap_groups(enabled))
+                       *step_cap_groups(enabled), np.zeros(len(enabled) + len(priorities)))
 
     def _fill_levels(self, q):
         """Write every enabled task's rows into the stacked Jacobian, error and target
@@ -276,17 +279,16 @@ class PIKSolver:
 
     def _reports(self, q, error, step_residuals):
         layout = self._layout
-        task_norms, level_norms = _error_norms(error, layout.task_starts, layout.offsets,
-                                               layout.row_scale)
-        # tolist: Python floats without one call per value
-        task_errors = dict(zip(layout.task_names, task_norms.tolist()))
-        levels = [LevelReport(*report) for report in zip(
-            layout.priorities, layout.level_tasks, level_norms.tolist(),
-            np.asarray(step_residuals, dtype=float).tolist())]
-        for task in self.tasks.values():
-            if not task.enabled:
-                _, task_error = task.jacobian_and_error(self.robot, q)
-                task_errors[task.name] = float(np.linalg.norm(task_error))
+        norms = layout.error_norms
+        _error_norms(error, layout.task_starts, layout.offsets, layout.row_scale, norms)
+        norms = norms.tolist()  # Python floats without one call per value
+        task_count = len(layout.task_names)
+        task_errors = dict(zip(layout.task_names, norms[:task_count]))
+        levels = list(map(LevelReport, layout.priorities, layout.level_tasks,
+                          norms[task_count:], np.asarray(step_residuals, dtype=float).tolist()))
+        for task in layout.disabled_tasks:
+            _, task_error = task.jacobian_and_error(self.robot, q)
+            task_errors[task.name] = float(np.linalg.norm(task_error))
         return levels, task_errors
 
     def _dq_bounds(self, q):
@@ -350,20 +352,22 @@ def _weighted_rows(jacobian, error, gain, group, cap, scale, target):
 
 
 @numba.njit(cache=True)
-def _error_norms(error, task_starts, level_offsets, row_scale):
-    """(|e| per task, |sqrt(w) e| per level) of the stacked error (task units)."""
-    task_norms = np.zeros(len(task_starts))
-    level_norms = np.zeros(len(level_offsets) - 1)
+def _error_norms(error, task_starts, level_offsets, row_scale, norms):
+    """norms = [|e| per task, |sqrt(w) e| per level] of the stacked error (task units), in
+    place: numba boxes any returned array at a cost."""
+    task_count = len(task_starts)
+    norms[:] = 0.0
     task = -1
     for row in range(len(error)):
-        while task + 1 < len(task_starts) and task_starts[task + 1] == row:
+        while task + 1 < task_count and task_starts[task + 1] == row:
             task += 1
-        task_norms[task] += error[row] * error[row]
-    for level in range(len(level_norms)):
+        norms[task] += error[row] * error[row]
+    for level in range(len(level_offsets) - 1):
         for row in range(level_offsets[level], level_offsets[level + 1]):
             weighted = row_scale[row] * error[row]
-            level_norms[level] += weighted * weighted
-    return np.sqrt(task_norms), np.sqrt(level_norms)
+            norms[task_count + level] += weighted * weighted
+    for index in range(len(norms)):
+        norms[index] = np.sqrt(norms[index])
 
 
 @numba.njit(cache=True)
