@@ -12,6 +12,7 @@ import pytest
 from stance.pik import PIKSolver
 from stance.robot import Robot
 from stance.stack import TaskSpec
+from stance.tasks import FrameTaskBatch, make_task
 
 EPSILON = 1e-6
 RELATIVE_TOLERANCE = 1e-6
@@ -71,3 +72,29 @@ def test_jacobian_matches_finite_differences(talos, spec, seed):
         scale = np.abs(expected).max()
         np.testing.assert_allclose(finite_difference, expected, rtol=RELATIVE_TOLERANCE,
                                    atol=RELATIVE_TOLERANCE * scale)
+
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_frame_rows_are_pinocchios_frame_jacobian_bit_for_bit(talos, seed):
+    """A frame task's rows, read in place from the joint Jacobians, equal
+    pinocchio.getFrameJacobian (LOCAL_WORLD_ALIGNED) exactly, and a FrameTaskBatch writes
+    each task's rows exactly as the task's own write() does."""
+    rng = np.random.default_rng(seed)
+    q = random_configuration(talos, rng)
+    solver = PIKSolver(talos)
+    solver.compute_kinematics(q)
+    tasks = [make_task(spec, talos) for spec in TASK_SPECS if spec.frame]
+    for task in tasks:
+        task.target = pin.SE3.Random()
+        jacobian, _ = task.jacobian_and_error(talos, q)
+        expected = pin.getFrameJacobian(talos.model, talos.data, task.frame_id,
+                                        pin.LOCAL_WORLD_ALIGNED)[task.rows]
+        assert np.array_equal(jacobian, expected)
+    starts = np.cumsum([0, *(task.dimension for task in tasks)])
+    jacobian, error = np.zeros((starts[-1], talos.model.nv)), np.zeros(starts[-1])
+    FrameTaskBatch(talos, tasks, starts[:-1]).write(talos, jacobian, error)
+    for task, start, end in zip(tasks, starts[:-1], starts[1:]):
+        task_jacobian, task_error = task.jacobian_and_error(talos, q)
+        assert np.array_equal(jacobian[start:end], task_jacobian)
+        assert np.array_equal(error[start:end], task_error)

@@ -330,26 +330,41 @@ def _nullspace_update(projected, basis, tolerance):
     """basis @ Q2, Q2 an orthonormal basis of null(projected): column-pivoted Householder
     QR of projected^T (pivots <= tolerance end the rank), reflections applied to basis.
     Basis columns the level does not see (zero columns of projected) are moved last and
-    kept as they are: no reflection involves them."""
-    k, m = projected.shape[1], projected.shape[0]
+    kept as they are: no reflection involves them. Both factors are stored transposed
+    (rows of projected, columns of basis as contiguous rows), so that every reflection
+    runs over contiguous memory."""
+    m, k = projected.shape
+    nv = basis.shape[0]
     seen = np.zeros(k, dtype=np.bool_)
     for c in range(k):
         for r in range(m):
             if projected[r, c] != 0.0:
                 seen[c] = True
                 break
-    order = np.concatenate((np.flatnonzero(seen), np.flatnonzero(~seen)))
-    involved = int(seen.sum())      # rows of a the reflections work on
-    a = np.ascontiguousarray(projected.T[order])   # k x m
-    b = np.ascontiguousarray(basis[:, order])      # nv x k
-    nv = b.shape[0]
+    involved = int(seen.sum())      # leading columns of a the reflections work on
+    a = np.empty((m, k))            # projected, seen columns first
+    b = np.empty((k, nv))           # basis^T in the same order
+    seen_count, unseen_count = 0, 0
+    for c in range(k):
+        if seen[c]:
+            column = seen_count
+            seen_count += 1
+        else:
+            column = involved + unseen_count
+            unseen_count += 1
+        for r in range(m):
+            a[r, column] = projected[r, c]
+        for dof in range(nv):
+            b[column, dof] = basis[dof, c]
     norms = np.zeros(m)
+    v = np.empty(involved)
+    combination = np.empty(nv)
     rank = 0
     for j in range(min(involved, m)):
         for c in range(j, m):
             acc = 0.0
             for r in range(j, involved):
-                acc += a[r, c] * a[r, c]
+                acc += a[c, r] * a[c, r]
             norms[c] = acc
         pivot = j
         for c in range(j + 1, m):
@@ -359,13 +374,15 @@ def _nullspace_update(projected, basis, tolerance):
             break
         if pivot != j:
             for r in range(involved):
-                a[r, j], a[r, pivot] = a[r, pivot], a[r, j]
+                a[j, r], a[pivot, r] = a[pivot, r], a[j, r]
         length = np.sqrt(norms[pivot])
         alpha = -length if a[j, j] >= 0 else length
-        v = a[j:involved, j].copy()
+        size = involved - j
+        for r in range(size):
+            v[r] = a[j, j + r]
         v[0] -= alpha
         v_sq = 0.0
-        for r in range(involved - j):
+        for r in range(size):
             v_sq += v[r] * v[r]
         rank += 1
         if v_sq == 0.0:
@@ -373,18 +390,18 @@ def _nullspace_update(projected, basis, tolerance):
         scale = 2.0 / v_sq
         for c in range(j, m):
             acc = 0.0
-            for r in range(involved - j):
-                acc += v[r] * a[j + r, c]
+            for r in range(size):
+                acc += v[r] * a[c, j + r]
             acc *= scale
-            for r in range(involved - j):
-                a[j + r, c] -= acc * v[r]
-        for row in range(nv):
-            acc = 0.0
-            for r in range(involved - j):
-                acc += b[row, j + r] * v[r]
-            if acc == 0.0:
-                continue
-            acc *= scale
-            for r in range(involved - j):
-                b[row, j + r] -= acc * v[r]
-    return np.ascontiguousarray(b[:, rank:])
+            for r in range(size):
+                a[c, j + r] -= acc * v[r]
+        combination[:] = 0.0        # v^T b over the reflected rows, per DoF
+        for r in range(size):
+            for dof in range(nv):
+                combination[dof] += v[r] * b[j + r, dof]
+        for dof in range(nv):
+            combination[dof] *= scale
+        for r in range(size):
+            for dof in range(nv):
+                b[j + r, dof] -= combination[dof] * v[r]
+    return np.ascontiguousarray(b[rank:].T)

@@ -50,39 +50,47 @@ NEGLIGIBLE_VARIATION = 1e-12  # rad: below this a joint variation is not worth a
 
 
 @numba.njit(cache=True)
-def _progressive_decision(configuration, variation, free, indices, table, progressive):
-    """(v indices to fix, their fixed variations, h) among the joints at indices = [q
-    indices; v indices] of the full configuration (nq), variation (nv) and free mask (nv),
-    table = [lower; upper; lower_threshold; upper_threshold; thickness] (few arguments: each
-    costs numba's dispatch). Equations 2-5, then the clamping check; with progressive False
-    only the clamping check (h in {0, 1})."""
+def _fix_joints(configuration, variation, indices, table, progressive, fixed, fixed_dq, h):
+    """Equations 2-5, then the clamping check (with progressive False only the check, h in
+    {0, 1}), for the joints at indices = [q indices; v indices] of the configuration (nq)
+    and variation (nv) not fixed yet; table = [lower; upper; lower_threshold;
+    upper_threshold; thickness] (few arguments: each costs numba's dispatch). A joint to
+    damp or clamp is fixed in place in fixed, fixed_dq and h (nv each), nothing is
+    returned boxed. Returns how many were fixed."""
     q_index, v_index = indices
     lower, upper, lower_threshold, upper_threshold, thickness = table
-    count = len(q_index)
-    index = np.zeros(count, dtype=np.int64)
-    varied = np.zeros(count)
-    h = np.zeros(count)
-    fixed = 0
-    for j in range(count):
-        q, dq = configuration[q_index[j]], variation[v_index[j]]
-        if not free[v_index[j]] or abs(dq) <= NEGLIGIBLE_VARIATION:
+    count = 0
+    for j in range(len(q_index)):
+        v = v_index[j]
+        q, dq = configuration[q_index[j]], variation[v]
+        if fixed[v] or abs(dq) <= NEGLIGIBLE_VARIATION:
             continue
         q_next = q + dq
-        damping, fixed_dq = 0.0, 0.0
+        damping, damped_dq = 0.0, 0.0
         if q_next > upper[j]:
-            damping, fixed_dq = 1.0, upper[j] - q
+            damping, damped_dq = 1.0, upper[j] - q
         elif q_next < lower[j]:
-            damping, fixed_dq = 1.0, lower[j] - q
+            damping, damped_dq = 1.0, lower[j] - q
         elif progressive:
             if q_next > q and q > upper_threshold[j]:
                 damping = cubic_step((q - upper_threshold[j]) / thickness[j])
             elif q_next < q and q < lower_threshold[j]:
                 damping = cubic_step((lower_threshold[j] - q) / thickness[j])
-            fixed_dq = (1.0 - damping) * dq
+            damped_dq = (1.0 - damping) * dq
         if damping > 0.0:
-            index[fixed], varied[fixed], h[fixed] = v_index[j], fixed_dq, damping
-            fixed += 1
-    return index[:fixed], varied[:fixed], h[:fixed]
+            fixed[v], fixed_dq[v], h[v] = True, damped_dq, damping
+            count += 1
+    return count
+
+
+def apply_decision(decision: LimitDecision, fixed, fixed_dq, h) -> bool:
+    """Write a decision into the clamping loop's arrays (nv each); True if it fixes any DoF."""
+    if not len(decision.index):
+        return False
+    fixed[decision.index] = True
+    fixed_dq[decision.index] = decision.dq
+    h[decision.index] = decision.h
+    return True
 
 
 @numba.njit(cache=True)
@@ -128,10 +136,18 @@ class RevoluteLimits:
         out than q: removes the negligible overshoot of variations the decision ignored."""
         _keep_inside(q, q_next, self.q_index, self.lower, self.upper)
 
+    def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
+        """Fix in place (fixed, fixed_dq, h: nv) the DoFs not fixed yet that dq must not
+        move freely; True if any. q: configuration (nq), dq: candidate variation (nv)."""
+        return _fix_joints(q, dq, self._indices, self._table, progressive, fixed, fixed_dq,
+                           h) > 0
+
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
-        return LimitDecision(*_progressive_decision(q, dq, free, self._indices, self._table,
-                                                    progressive))
+        fixed, fixed_dq, h = ~free, np.zeros(len(free)), np.zeros(len(free))
+        self.fix(q, dq, fixed, fixed_dq, h, progressive)
+        index = self.v_index[fixed[self.v_index] & free[self.v_index]]
+        return LimitDecision(index, fixed_dq[index], h[index])
 
 
 class Strategy:
@@ -143,6 +159,11 @@ class Strategy:
 
     def decide(self, model, q, dq, free) -> LimitDecision:
         return model.decide(q, dq, free, self.progressive)
+
+    def fix(self, model, q, dq, fixed, fixed_dq, h) -> bool:
+        """The model's decision written in place into the clamping loop's arrays (nv
+        each); True if it fixes any DoF."""
+        return model.fix(q, dq, fixed, fixed_dq, h, self.progressive)
 
     def extra_levels(self, solver, q) -> list:
         """Levels appended below the task levels (lowest priority); none by default."""
@@ -156,6 +177,9 @@ class NoLimits(Strategy):
     def decide(self, model, q, dq, free) -> LimitDecision:
         empty = np.zeros(0)
         return LimitDecision(np.zeros(0, dtype=int), empty, empty)
+
+    def fix(self, model, q, dq, fixed, fixed_dq, h) -> bool:
+        return False
 
 
 class GradientProjection(NoLimits):

@@ -29,8 +29,9 @@ import pinocchio as pin
 
 from .hierarchy import DampedHierarchy
 from .limits import RevoluteLimits, make_strategy
-from .stack import StackError, parse_stack_yaml, validate_stack
-from .tasks import ComTask, capped_steps, make_task, step_cap_groups
+from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
+from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
+                    step_cap_groups)
 
 
 @dataclass
@@ -60,8 +61,11 @@ class StepResult:
 class _Layout:
     """Row layout of the enabled tasks, rebuilt when the stack or an enable flag changes."""
 
-    tasks: list                 # (task, its Jacobian rows, its error rows, sqrt(weight)) in
-    #                             priority order: views of the solver's stacked arrays
+    task_names: list            # in priority order
+    disabled_tasks: list        # reported, not solved
+    frame_tasks: FrameTaskBatch  # frame tasks, written in one call
+    other_tasks: list           # (task, its Jacobian rows, its error rows) for the others:
+    #                             views of the solver's stacked arrays
     priorities: list
     level_tasks: list
     offsets: np.ndarray         # level row offsets (levels + 1)
@@ -70,6 +74,7 @@ class _Layout:
     row_gain: np.ndarray        # task gain per row
     row_group: np.ndarray       # step cap group per row (Task.step_caps)
     group_cap: np.ndarray       # norm cap per group (task units per step)
+    error_norms: np.ndarray     # filled per step: |e| per task, then |sqrt(w) e| per level
 
 
 class PIKSolver:
@@ -182,12 +187,7 @@ class PIKSolver:
             iterations += 1
             changed = False
             for model in self.limit_models:
-                decision = self.strategy.decide(model, q, solution.dq, ~fixed)
-                if len(decision.index):
-                    fixed[decision.index] = True
-                    fixed_dq[decision.index] = decision.dq
-                    h[decision.index] = decision.h
-                    changed = True
+                changed |= self.strategy.fix(model, q, solution.dq, fixed, fixed_dq, h)
             if not changed:
                 break
 
@@ -209,9 +209,15 @@ class PIKSolver:
         """Compile (or load from numba's disk cache) the step's kernels, including the
         velocity-saturation path, by one discarded step from q: the first compilation takes
         about 20 s, which a real-time loop must not pay on its first cycle."""
+        robot, nv = self.robot, self.robot.model.nv
         self.step(q)   # leaves the stacked Jacobian and target filled at q
-        _level_residuals(self._jacobian, self._target, self._layout.offsets,
-                         np.zeros(self.robot.model.nv))
+        _level_residuals(self._jacobian, self._target, self._layout.offsets, np.zeros(nv))
+        # kernels a later stack or strategy may need: the task kinds', the joint limits'
+        for spec in (TaskSpec("com", "com"),
+                     TaskSpec("frame", "pose", frame=robot.model.frames[-1].name)):
+            make_task(spec, robot).jacobian_and_error(robot, q)
+        self.limits.decide(q, np.zeros(nv), np.ones(nv, dtype=bool), True)
+        self.limits.keep_inside(q, q.copy())
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""
@@ -230,7 +236,7 @@ class PIKSolver:
         jacobian = self._jacobian = np.zeros((row_count, self.robot.model.nv))
         error = self._error = np.zeros(row_count)
         self._target = np.zeros(row_count)
-        placed, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
+        others, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
         gains = []
         row = 0
         for task in enabled:
@@ -241,44 +247,48 @@ class PIKSolver:
                 level_tasks.append([])
             level_tasks[-1].append(task.name)
             scale = float(np.sqrt(task.weight))
-            rows = slice(row, row + task.dimension)
-            placed.append((task, jacobian[rows], error[rows], scale))
+            if not isinstance(task, FrameTask):
+                rows = slice(row, row + task.dimension)
+                others.append((task, jacobian[rows], error[rows]))
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
             row += task.dimension
         if priorities:
             offsets.append(row)
-        return _Layout(placed, priorities, level_tasks, np.array(offsets, dtype=np.int64),
+        frames = [index for index, task in enumerate(enabled) if isinstance(task, FrameTask)]
+        return _Layout([task.name for task in enabled],
+                       [task for task in self.tasks.values() if not task.enabled],
+                       FrameTaskBatch(self.robot, [enabled[index] for index in frames],
+                                      [starts[index] for index in frames]),
+                       others, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
-                       *step_cap_groups(enabled))
+                       *step_cap_groups(enabled), np.zeros(len(enabled) + len(priorities)))
 
     def _fill_levels(self, q):
         """Write every enabled task's rows into the stacked Jacobian, error and target
         (Jacobian and target rows scaled by sqrt(weight))."""
         jacobian, target, error = self._jacobian, self._target, self._error
         layout, robot = self._layout, self.robot
-        for task, task_jacobian, task_error, scale in layout.tasks:
+        layout.frame_tasks.write(robot, jacobian, error)
+        for task, task_jacobian, task_error in layout.other_tasks:
             task.write(robot, q, task_jacobian, task_error)
-            if scale != 1.0:
-                task_jacobian *= scale
-        capped_steps(error, layout.row_gain, layout.row_group, layout.group_cap,
-                     layout.row_scale, target)
+        _weighted_rows(jacobian, error, layout.row_gain, layout.row_group, layout.group_cap,
+                       layout.row_scale, target)
         return jacobian, target, error
 
     def _reports(self, q, error, step_residuals):
         layout = self._layout
-        task_norms, level_norms = _error_norms(error, layout.task_starts, layout.offsets,
-                                               layout.row_scale)
-        task_errors = {task.name: norm  # tolist: Python floats without one call per value
-                       for (task, *_), norm in zip(layout.tasks, task_norms.tolist())}
-        levels = [LevelReport(*report) for report in zip(
-            layout.priorities, layout.level_tasks, level_norms.tolist(),
-            np.asarray(step_residuals, dtype=float).tolist())]
-        for task in self.tasks.values():
-            if not task.enabled:
-                _, task_error = task.jacobian_and_error(self.robot, q)
-                task_errors[task.name] = float(np.linalg.norm(task_error))
+        norms = layout.error_norms
+        _error_norms(error, layout.task_starts, layout.offsets, layout.row_scale, norms)
+        norms = norms.tolist()  # Python floats without one call per value
+        task_count = len(layout.task_names)
+        task_errors = dict(zip(layout.task_names, norms[:task_count]))
+        levels = list(map(LevelReport, layout.priorities, layout.level_tasks,
+                          norms[task_count:], np.asarray(step_residuals, dtype=float).tolist()))
+        for task in layout.disabled_tasks:
+            _, task_error = task.jacobian_and_error(self.robot, q)
+            task_errors[task.name] = float(np.linalg.norm(task_error))
         return levels, task_errors
 
     def _dq_bounds(self, q):
@@ -331,20 +341,33 @@ def _velocity_saturation(dq, fixed_dq, level_steps, by_level, speed_index, inver
 
 
 @numba.njit(cache=True)
-def _error_norms(error, task_starts, level_offsets, row_scale):
-    """(|e| per task, |sqrt(w) e| per level) of the stacked error (task units)."""
-    task_norms = np.zeros(len(task_starts))
-    level_norms = np.zeros(len(level_offsets) - 1)
+def _weighted_rows(jacobian, error, gain, group, cap, scale, target):
+    """Scale the stacked Jacobian's rows by sqrt(weight) `scale` in place and write the
+    scaled, capped steps of `error` into target (capped_steps)."""
+    for row in range(len(scale)):
+        if scale[row] != 1.0:
+            for column in range(jacobian.shape[1]):
+                jacobian[row, column] *= scale[row]
+    capped_steps(error, gain, group, cap, scale, target)
+
+
+@numba.njit(cache=True)
+def _error_norms(error, task_starts, level_offsets, row_scale, norms):
+    """norms = [|e| per task, |sqrt(w) e| per level] of the stacked error (task units), in
+    place: numba boxes any returned array at a cost."""
+    task_count = len(task_starts)
+    norms[:] = 0.0
     task = -1
     for row in range(len(error)):
-        while task + 1 < len(task_starts) and task_starts[task + 1] == row:
+        while task + 1 < task_count and task_starts[task + 1] == row:
             task += 1
-        task_norms[task] += error[row] * error[row]
-    for level in range(len(level_norms)):
+        norms[task] += error[row] * error[row]
+    for level in range(len(level_offsets) - 1):
         for row in range(level_offsets[level], level_offsets[level + 1]):
             weighted = row_scale[row] * error[row]
-            level_norms[level] += weighted * weighted
-    return np.sqrt(task_norms), np.sqrt(level_norms)
+            norms[task_count + level] += weighted * weighted
+    for index in range(len(norms)):
+        norms[index] = np.sqrt(norms[index])
 
 
 @numba.njit(cache=True)

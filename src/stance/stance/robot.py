@@ -58,6 +58,12 @@ class Robot:
         self.lower = self.model.lowerPositionLimit[self.limited_q_index].copy()
         self.upper = self.model.upperPositionLimit[self.limited_q_index].copy()
         self.velocity_limit = self.model.velocityLimit[self.limited_v_index].copy()
+        # per frame id: velocity DoFs of the joints that move it (its parent and ancestors)
+        self.frame_supports = [
+            np.array([self.model.joints[joint].idx_v + dof
+                      for joint in self.model.supports[frame.parentJoint][1:]
+                      for dof in range(self.model.joints[joint].nv)], dtype=np.int64)
+            for frame in self.model.frames]
 
     @classmethod
     def from_example_robot_data(cls, name: str = "talos") -> Robot:

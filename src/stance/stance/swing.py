@@ -38,7 +38,8 @@ import numpy as np
 import pinocchio as pin
 import yaml
 
-from .limits import NEGLIGIBLE_VARIATION, LimitDecision, RevoluteLimits, cubic_step
+from .limits import (NEGLIGIBLE_VARIATION, LimitDecision, RevoluteLimits, apply_decision,
+                     cubic_step)
 
 OUTSIDE_TOLERANCE = 1e-9   # rad: a state this close outside a limit counts as on it
 Z_AXIS = np.array([0.0, 0.0, 1.0])
@@ -319,6 +320,11 @@ class SwingTwistRule:
         self.twist = None if twist is None else RevoluteLimits(
             [f"{name}_twist"], [0], [0], [twist[0]], [twist[1]], activation)
         self._state_key, self._state = None, None
+
+    def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
+        """The subclass' decide() written in place into the clamping loop's arrays (fixed,
+        fixed_dq, h: nv); True if it fixes any DoF."""
+        return apply_decision(self.decide(q, dq, ~fixed, progressive), fixed, fixed_dq, h)
 
     def may_reach(self, key: bytes, rotation, reach: float, zone: float) -> bool:
         """Whether the joint rotation `rotation` (its configuration bytes: `key`, a cache key

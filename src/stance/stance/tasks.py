@@ -113,6 +113,58 @@ def frame_error(target, current, out):
         out[3:] = angle / _length(axis) * axis
 
 
+@numba.njit(cache=True)
+def frame_rows(world_jacobian, support, current, target, rows, jacobian, error):
+    """Rows `rows` (indices into x, y, z, rx, ry, rz) of a frame task, written into
+    jacobian (len(rows) x nv) and error (len(rows)): the frame's Jacobian in
+    LOCAL_WORLD_ALIGNED, from the joint Jacobians `world_jacobian` (6 x nv, Pinocchio's
+    data.J in the WORLD frame) on the `support` DoFs (those moving the frame; the other
+    columns are zero), and frame_error(target, current) (4x4 poses). Same arithmetic as
+    pinocchio.getFrameJacobian: linear = v - p x omega at the frame origin p."""
+    full_error = np.empty(6)
+    frame_error(target, current, full_error)
+    for k in range(len(rows)):
+        error[k] = full_error[rows[k]]
+    jacobian[:] = 0.0
+    px, py, pz = current[0, 3], current[1, 3], current[2, 3]
+    for column in support:
+        wx, wy, wz = world_jacobian[3, column], world_jacobian[4, column], \
+            world_jacobian[5, column]
+        for k in range(len(rows)):
+            axis = rows[k]
+            if axis == 0:
+                jacobian[k, column] = world_jacobian[0, column] - (py * wz - pz * wy)
+            elif axis == 1:
+                jacobian[k, column] = world_jacobian[1, column] - (pz * wx - px * wz)
+            elif axis == 2:
+                jacobian[k, column] = world_jacobian[2, column] - (px * wy - py * wx)
+            else:
+                jacobian[k, column] = world_jacobian[axis, column]
+
+
+@numba.njit(cache=True)
+def _frame_batch_rows(world_jacobian, poses, supports, support_starts, axes, axis_starts,
+                      first_rows, jacobian, error):
+    """frame_rows for n frame tasks in one call: task i with poses[i] = [current, target]
+    (2 x 4 x 4), support DoFs supports[support_starts[i]:support_starts[i + 1]] and axes
+    axes[axis_starts[i]:axis_starts[i + 1]] writes the rows of jacobian and error that
+    start at first_rows[i]."""
+    for i in range(len(first_rows)):
+        rows = slice(first_rows[i], first_rows[i] + axis_starts[i + 1] - axis_starts[i])
+        frame_rows(world_jacobian, supports[support_starts[i]:support_starts[i + 1]],
+                   poses[i, 0], poses[i, 1], axes[axis_starts[i]:axis_starts[i + 1]],
+                   jacobian[rows], error[rows])
+
+
+@numba.njit(cache=True)
+def selected_rows(full_jacobian, target, current, rows, jacobian, error):
+    """jacobian[k] = full_jacobian[rows[k]], error[k] = target[rows[k]] - current[rows[k]]
+    (one compiled call instead of several numpy ones)."""
+    for k in range(len(rows)):
+        jacobian[k] = full_jacobian[rows[k]]
+        error[k] = target[rows[k]] - current[rows[k]]
+
+
 class Task:
     """Base class. Subclasses set `self.rows` (selected row indices) and implement
     `write(robot, q, jacobian, error)` on kinematics already computed in robot.data."""
@@ -166,8 +218,8 @@ class FrameTask(Task):
     def __init__(self, spec: TaskSpec, robot):
         super().__init__(spec, robot)
         self.frame_id = robot.frame_id(spec.frame)
-        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()], dtype=int)
-        self._all_rows = len(self.rows) == 6
+        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()],
+                             dtype=np.int64)
         self._needs_rotation = bool(np.any(self.rows >= 3))
         self._linear = np.flatnonzero(self.rows < 3)
         self._angular = np.flatnonzero(self.rows >= 3)
@@ -200,14 +252,12 @@ class FrameTask(Task):
         return error
 
     def write(self, robot, q, jacobian, error) -> None:
-        frame_jacobian = pin.getFrameJacobian(robot.model, robot.data, self.frame_id,
-                                              pin.LOCAL_WORLD_ALIGNED)
-        if self._all_rows:
-            jacobian[:] = frame_jacobian
-            self.full_error(robot, error)
-        else:
-            jacobian[:] = frame_jacobian[self.rows]
-            error[:] = self.full_error(robot)[self.rows]
+        """Selected rows of [p_target - p; log3(R_target R^T)] (m, rad) and of the frame
+        Jacobian, world-aligned at the frame origin (jacobian and error C-contiguous)."""
+        data = robot.data
+        frame_rows(data.J, robot.frame_supports[self.frame_id],
+                   data.oMf[self.frame_id].homogeneous,
+                   self._target_homogeneous, self.rows, jacobian, error)
 
     def step_caps(self) -> list:
         """Translation and rotation rows capped separately (m and rad per step)."""
@@ -234,6 +284,38 @@ class OrientationTask(FrameTask):
     """Frame orientation (axes rx, ry, rz); the target's translation is ignored."""
 
 
+class FrameTaskBatch:
+    """Frame tasks whose rows lie in one stacked Jacobian and error, written together by
+    one compiled call (FrameTask.write's arithmetic) instead of one call per task.
+
+    tasks: the frame tasks; first_rows: the stacked row of each task's first selected axis.
+    """
+
+    def __init__(self, robot, tasks, first_rows):
+        self.tasks = list(tasks)
+        self._frame_ids = [task.frame_id for task in self.tasks]
+        supports = [robot.frame_supports[frame_id] for frame_id in self._frame_ids]
+        self._supports = np.concatenate([np.zeros(0, dtype=np.int64), *supports])
+        self._support_starts = np.cumsum([0, *map(len, supports)]).astype(np.int64)
+        self._axes = np.concatenate([np.zeros(0, dtype=np.int64),
+                                     *(task.rows for task in self.tasks)])
+        self._axis_starts = np.cumsum([0, *(task.dimension for task in self.tasks)]
+                                      ).astype(np.int64)
+        self._first_rows = np.array(first_rows, dtype=np.int64)
+        self._poses = np.zeros((len(self.tasks), 2, 4, 4))
+
+    def write(self, robot, jacobian, error) -> None:
+        """Write the tasks' rows (kinematics already in robot.data) into the stacked
+        jacobian and error."""
+        data = robot.data
+        placements, poses = data.oMf, self._poses
+        for index, (task, frame_id) in enumerate(zip(self.tasks, self._frame_ids)):
+            poses[index, 0] = placements[frame_id].homogeneous
+            poses[index, 1] = task._target_homogeneous
+        _frame_batch_rows(data.J, poses, self._supports, self._support_starts, self._axes,
+                          self._axis_starts, self._first_rows, jacobian, error)
+
+
 class ComTask(Task):
     """Center of mass position in the world frame (m); target a 3-vector."""
 
@@ -241,7 +323,8 @@ class ComTask(Task):
 
     def __init__(self, spec: TaskSpec, robot):
         super().__init__(spec, robot)
-        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()], dtype=int)
+        self.rows = np.array([AXES.index(axis) for axis in spec.selected_axes()],
+                             dtype=np.int64)
         self.target = np.zeros(3)
 
     def hold(self, robot, q) -> None:
@@ -254,8 +337,8 @@ class ComTask(Task):
         self.target = position.copy()
 
     def write(self, robot, q, jacobian, error) -> None:
-        jacobian[:] = robot.data.Jcom[self.rows]
-        error[:] = (self.target - robot.data.com[0])[self.rows]
+        data = robot.data
+        selected_rows(data.Jcom, self.target, data.com[0], self.rows, jacobian, error)
 
     def current_pose(self, robot):
         return pin.SE3(np.eye(3), robot.data.com[0].copy())
