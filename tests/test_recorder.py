@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import yaml
@@ -28,8 +29,8 @@ from std_msgs.msg import String
 
 from helpers.publish_stream import URDF, joint_state, solver_status
 from stance_tools.bag import read_messages, start_time_ns, topic_counts
-from stance_tools.plot import joint_limits
-from stance_tools.record import BagWriter, message_definition
+from stance_tools.plot import Series, joint_limits, merged, window_maximum, with_gaps
+from stance_tools.record import BagWriter, TopicCounters, message_definition, summary_table
 
 HELPERS = Path(__file__).parent / "helpers"
 STREAM_TYPES = {"/joint_states": JointState, "/pik/status": SolverStatus}
@@ -107,6 +108,7 @@ def test_stream_recorded_without_loss(processes, tmp_path):
     assert {name: len(messages.get(name, [])) for name in counts} == counts
     assert topic_counts(bag_dir) == counts
     assert info["starting_time"]["nanoseconds_since_epoch"] == start_time_ns(bag_dir)
+    assert {chunk.compression for chunk in summary.chunk_indexes} == {"zstd"}
     channels = {c.topic: c for c in summary.channels.values()}
     assert yaml.safe_load(channels["/pik/status"].metadata["offered_qos_profiles"])
     assert summary.schemas[channels["/pik/status"].schema_id].name == "stance_msgs/msg/SolverStatus"
@@ -221,3 +223,45 @@ def test_joint_limits_from_urdf():
     assert list(limits) == ["hip_pitch", "knee", "ankle_pitch", "shoulder_roll", "elbow",
                             "slider"]
     assert limits["knee"] == (0.0, 2.6) and limits["slider"] == (-0.1, 0.1)
+
+
+def test_window_maximum_is_the_brute_force_maximum():
+    rng = np.random.default_rng(0)
+    for count in (1, 2, 7, 3000):
+        for times in (np.sort(rng.uniform(0.0, 5.0, count)), 0.002 * np.arange(count)):
+            values = rng.uniform(size=count)
+            first = np.searchsorted(times, times - 0.05)
+            expected = [values[start:end + 1].max() for end, start in enumerate(first)]
+            assert np.array_equal(window_maximum(times, values, 0.05), expected)
+
+
+def test_levels_of_a_changing_stack_merge_per_priority_and_break_at_gaps():
+    series = Series()
+    series.extend("P0: left_sole, right_sole", [0.0, 0.002], [1.0, 2.0])
+    series.extend("P0: left_sole", [1.0, 1.002], [3.0, 4.0])
+    series.extend("P1: com", [0.0], [5.0])
+    per_priority = merged(series, lambda label: label.split(":")[0])
+    assert per_priority.names() == ["P0", "P1"]
+    times, values = per_priority.arrays("P0")
+    assert times.tolist() == [0.0, 0.002, 1.0, 1.002] and values.tolist() == [1, 2, 3, 4]
+    times, values = with_gaps(times, values)
+    assert np.isnan(times[2]) and np.isnan(values[2]) and len(times) == 5
+
+
+def test_latched_history_gone_before_the_recorder_joined_is_not_a_loss():
+    """A depth-1 latched publisher that published twice before the match: DDS reports the
+    first as lost, the first message received is sequence 2. Only that one is forgiven."""
+    def counters(name, lost, single_latched_publisher, first_sequence):
+        return TopicCounters(name, "std_msgs/msg/String", received=4, written=4, lost=lost,
+                             single_latched_publisher=single_latched_publisher,
+                             first_sequence=first_sequence)
+
+    joined_late = counters("/trajectory/status", 1, True, 2)
+    lost_live = counters("/joint_states", 1, False, 1)
+    lost_after_history = counters("/stabilizer/state", 3, True, 2)
+    assert (joined_late.lost_while_recording(), lost_live.lost_while_recording(),
+            lost_after_history.lost_while_recording()) == (0, 1, 2)
+    table, complete = summary_table(SimpleNamespace(topics={"a": joined_late}, skipped={}))
+    assert complete and "1 message(s) published before the recorder joined" in table
+    for lost in (lost_live, lost_after_history):
+        assert not summary_table(SimpleNamespace(topics={"a": lost}, skipped={}))[1]

@@ -11,12 +11,17 @@ Design, chosen so that a recording never loses a message without saying so:
   /robot_description are captured even when published before the recorder started).
 - Every topic counts received, written and failed messages, and the samples the RMW reports
   lost (``message_lost`` QoS event); the summary printed at exit shows them and the exit code
-  is non-zero if anything was lost, failed to write, or could not be subscribed.
+  is non-zero if anything was lost, failed to write, or could not be subscribed. On a latched
+  topic with one publisher, messages published before the recorder joined and no longer in
+  that publisher's history are reported by DDS as lost: they are listed, not counted.
 
 Output: ``OUTDIR/OUTDIR_0.mcap`` and ``OUTDIR/metadata.yaml`` as written by
 ``ros2 bag record -s mcap`` in Jazzy (metadata version 9), so ``ros2 bag info/play`` and
 third-party readers (rosbags, mcap_ros2) open it. Schemas are ``ros2msg`` full definitions built
-from the ``.msg`` files of the ament index, with dependencies appended as rosbag2 does.
+from the ``.msg`` files of the ament index, with dependencies appended as rosbag2 does. Chunks
+are zstd-compressed inside the MCAP file (rosbag2's ``zstd_fast`` storage preset does the same;
+the metadata's file compression stays empty): the 500 Hz joint states and solver statuses
+shrink about 40x, at a fraction of a millisecond per 1 MB chunk.
 """
 
 import importlib
@@ -131,7 +136,7 @@ class BagWriter:
         self.directory.mkdir(parents=True)  # FileExistsError: never overwrite a bag
         self.file_name = f"{self.directory.name}_0.mcap"
         self._stream = open(self.directory / self.file_name, "wb")
-        self._mcap = McapWriter(self._stream, compression=CompressionType.NONE)
+        self._mcap = McapWriter(self._stream, compression=CompressionType.ZSTD)
         self._mcap.start(profile="ros2", library="stance record")
         self._schema_ids = {}
         self.topics = {}
@@ -237,7 +242,9 @@ def is_hidden(topic):
 @dataclass
 class TopicCounters:
     """Per-topic accounting. received: delivered to the callback; lost: reported by the RMW
-    (None if it cannot report); failed: could not be written."""
+    (None if it cannot report); failed: could not be written. single_latched_publisher: a
+    transient-local topic with one publisher, whose first message received tells (by its
+    publication sequence number) how many were published before the recorder joined."""
     name: str
     type: str
     subscription: object = field(default=None, repr=False)
@@ -245,6 +252,19 @@ class TopicCounters:
     written: int = 0
     failed: int = 0
     lost: int | None = 0
+    single_latched_publisher: bool = False
+    first_sequence: int | None = None
+
+    def lost_before_joining(self) -> int:
+        """Reported losses that are messages published before the recorder joined and no
+        longer in the publisher's history (a depth-1 latched publisher that published twice
+        before the match): DDS reports them lost, but they were never the recording's."""
+        if not self.lost or not self.single_latched_publisher or not self.first_sequence:
+            return 0
+        return min(self.lost, self.first_sequence - 1)
+
+    def lost_while_recording(self) -> int | None:
+        return None if self.lost is None else self.lost - self.lost_before_joining()
 
 
 class Recorder:
@@ -293,8 +313,9 @@ class Recorder:
             self.skipped[name] = f"{type_name}: {error}"
             log.error(f"not recording {name}: {self.skipped[name]}")
             return
-        counters = TopicCounters(name, type_name)
         qos = subscription_qos(publishers)
+        counters = TopicCounters(name, type_name, single_latched_publisher=(
+            len(publishers) == 1 and qos.durability == DurabilityPolicy.TRANSIENT_LOCAL))
         callback = partial(self._on_message, counters)
         try:
             counters.subscription = self._node.create_subscription(
@@ -310,14 +331,17 @@ class Recorder:
                  f"{qos.durability.name.lower()}")
 
     def _on_message(self, counters, data, info):
+        if not counters.received:
+            counters.first_sequence = info.get("publication_sequence_number")
         counters.received += 1
         self._queue.put((counters, data, time.time_ns(), info["source_timestamp"] or None,
                          counters.received))
 
     def _on_lost(self, counters, status):
         counters.lost += status.total_count_change
-        self._node.get_logger().error(
-            f"{counters.name}: messages lost in DDS ({status.total_count} in total)",
+        self._node.get_logger().warning(
+            f"{counters.name}: DDS reports messages lost ({status.total_count} in total; "
+            f"the summary tells those published before the recorder joined)",
             throttle_duration_sec=1.0)
 
     def _write_loop(self):
@@ -361,17 +385,23 @@ def summary_table(recorder):
     """Per-topic table (received, written, lost, failed) and whether the recording is complete."""
     rows = [("topic", "type", "received", "written", "lost", "failed")]
     complete = not recorder.skipped
+    notes = []
     for counters in sorted(recorder.topics.values(), key=lambda c: c.name):
+        lost = counters.lost_while_recording()
         rows.append((counters.name, counters.type, str(counters.received), str(counters.written),
-                     "n/a" if counters.lost is None else str(counters.lost), str(counters.failed)))
+                     "n/a" if lost is None else str(lost), str(counters.failed)))
         complete &= (counters.written == counters.received and not counters.failed
-                     and not counters.lost)
+                     and not lost)
+        if before := counters.lost_before_joining():
+            notes.append(f"{counters.name}: {before} message(s) "
+                         f"published before the recorder joined were no longer in the "
+                         f"publisher's history (reported lost by DDS, not counted)")
     for name, reason in sorted(recorder.skipped.items()):
         rows.append((name, f"NOT RECORDED: {reason}", "", "", "", ""))
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(cell.ljust(w) if i < 2 else cell.rjust(w)
                        for i, (cell, w) in enumerate(zip(row, widths))).rstrip() for row in rows]
-    return "\n".join(lines), complete
+    return "\n".join(lines + notes), complete
 
 
 def add_arguments(parser):
