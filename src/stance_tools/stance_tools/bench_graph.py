@@ -21,10 +21,11 @@ from __future__ import annotations
 import json
 import math
 import os
-import signal
 import threading
 import time
 from pathlib import Path
+
+from .processes import terminate_as_interrupt
 
 SCENE = "flat_steps"
 WINDOW = 1.0              # s per CPU sample
@@ -57,17 +58,15 @@ def run_graph(args) -> int:
 
     velocity_scale = demo.VELOCITY_SCALE if args.velocity_scale is None else args.velocity_scale
     load_start = os.getloadavg()
-    previous_term = signal.signal(signal.SIGTERM, signal.default_int_handler)  # clean stop
     try:
-        phases, node_pids = _run_phases(args, velocity_scale)
+        with terminate_as_interrupt():
+            phases, node_pids = _run_phases(args, velocity_scale)
     except BenchError as error:
         print(f"stance bench graph: {error} (node logs in {args.log_dir})")
         return 1
     except KeyboardInterrupt:  # the nodes have been stopped on the way out
         print("stance bench graph: interrupted")
         return 130
-    finally:
-        signal.signal(signal.SIGTERM, previous_term)
     figures = {
         "scene": SCENE, "velocity_scale": velocity_scale, "window_s": WINDOW,
         "target_percent": TARGET_PERCENT,

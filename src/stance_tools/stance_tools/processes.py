@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 TERM_GRACE = 2.0  # s between SIGTERM and SIGKILL
@@ -25,6 +26,18 @@ def signal_group(proc, signal_number) -> None:
         os.killpg(proc.pid, signal_number)
     except ProcessLookupError:
         pass
+
+
+@contextmanager
+def terminate_as_interrupt():
+    """Inside, SIGTERM raises KeyboardInterrupt as Ctrl-C does: a command killed by SIGTERM
+    still runs its `finally` blocks and stops its child processes (each in its own session,
+    the signal does not reach them); without it they would outlive the command."""
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def group_exists(proc) -> bool:
