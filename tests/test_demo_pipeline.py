@@ -1,17 +1,22 @@
 """`stance demo --scenario flat_steps` end to end: the graph plans and executes flat_steps
 while recording, check-run passes, and the report folder holds the bag, the plots, the
-plan and its contact sheet, and report.md with the numbers and the verdict."""
+plan and its contact sheet, and report.md with the numbers and the verdict. SIGTERM stops
+the demo and every process it started."""
 
 import json
+import os
 import re
+import signal
 import subprocess
+from pathlib import Path
 
 import pytest
 from stance_tools import check_run
 from stance_tools.bag import topic_counts
 from stance_tools.demo import PIPELINE_TOPICS
 
-PLOTS = ("contacts.png", "stabilizer.png", "joints.png", "com.png", "plan.png")
+PLOTS = ("contacts.png", "stabilizer.png", "joints.png", "com.png", "damping.png",
+         "errors.png", "plan.png")
 
 
 @pytest.fixture(scope="module")
@@ -54,3 +59,48 @@ def test_report_folder_holds_bag_plots_plan_and_report(demo):
 def test_the_recorded_bag_checks_again_the_same(demo):
     _, _, folder = demo
     assert check_run.check_bag(folder / "bag").passed
+
+
+def children(pid):
+    """PIDs of the live processes whose parent is pid (Linux /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            status = (entry / "status").read_text()
+        except (OSError, ValueError):
+            continue
+        if re.search(rf"^PPid:\s+{pid}$", status, re.MULTILINE):
+            found.append(int(entry.name))
+    return found
+
+
+def alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def test_sigterm_stops_the_demo_and_every_process_it_started(tmp_path):
+    demo = subprocess.Popen(["stance", "demo", "--scenario", "flat_steps", "-o", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    started = []
+    try:
+        for line in demo.stdout:   # the graph and the recorder are up: planning runs
+            if line.startswith("graph up"):
+                break
+        started = children(demo.pid)
+        assert len(started) >= 5, started   # four nodes and the recorder
+        demo.send_signal(signal.SIGTERM)
+        _, stderr = demo.communicate(timeout=60)
+        assert demo.returncode == 130, stderr[-2000:]
+        assert "stance demo: interrupted" in stderr
+        assert not [pid for pid in started if alive(pid)]
+    finally:   # whatever failed, leave no process to the next tests
+        demo.kill()
+        demo.wait(timeout=10)
+        for pid in started:   # each child leads its own process group
+            if alive(pid):
+                os.killpg(pid, signal.SIGKILL)

@@ -28,15 +28,16 @@ def mcap_files(bag):
     return files
 
 
-def read_messages(bag, topics=None):
+def read_messages(bag, topics=None, start_time_ns=None):
     """Yield (topic, log_time_ns, decoded message) in log-time order within each file;
-    topics: an iterable of topic names to keep (default: all)."""
+    topics: an iterable of topic names to keep (default: all); start_time_ns: only messages
+    logged from then on (ns since the epoch; default: all)."""
     topics = None if topics is None else list(topics)
     for path in mcap_files(bag):
         with open(path, "rb") as stream:
             reader = make_reader(stream, decoder_factories=[DecoderFactory()])
             for _, channel, message, decoded in reader.iter_decoded_messages(
-                    topics=topics, log_time_order=True):
+                    topics=topics, start_time=start_time_ns, log_time_order=True):
                 yield channel.topic, message.log_time, decoded
 
 

@@ -11,8 +11,9 @@ stabilizer_gate_node (the default graph's nodes, stabilizer gate on the scene, t
 with --planner-workers processes), the recorder on PIPELINE_TOPICS, a
 PlanContacts goal for the scene, the execution until the trajectory status is `done`
 (`failed`: exit 1), then `stance check-run` on the bag and a report folder OUTPUT/SCENE:
-bag/, plots (contacts.png, stabilizer.png, joints.png, com.png), the plan (plan.json) and
-its contact sheet (plan.png), report.md, logs/. Exit 0 when every check passes.
+bag/, plots (contacts.png, stabilizer.png, joints.png, com.png, damping.png, errors.png),
+the plan (plan.json) and its contact sheet (plan.png), report.md, logs/. Exit 0 when every
+check passes.
 """
 
 from __future__ import annotations
@@ -28,17 +29,18 @@ import time
 from pathlib import Path
 
 from .background_node import BackgroundNode
-from .processes import ProcessGroup
+from .processes import ProcessGroup, terminate_as_interrupt
 
 DEFAULT_OUTPUT = Path("out") / "demo"
 PIK = "pik"
 DEFAULT_SCENARIO = "flat_steps"
-PIPELINE_TOPICS = ("/joint_states", "/pik/base_pose", "/robot_description",
+PIPELINE_TOPICS = ("/joint_states", "/pik/base_pose", "/pik/status", "/robot_description",
                    "/contact_planner/plan", "/trajectory/joint_trajectory",
                    "/trajectory/active_stance", "/trajectory/status", "/stabilizer/state")
 # Subscribers each topic has once the graph and the recorder are up (the recorder, the
 # nodes reading it, this command's own status subscription).
-READY_SUBSCRIBERS = {"/joint_states": 1, "/pik/base_pose": 1, "/robot_description": 1,
+READY_SUBSCRIBERS = {"/joint_states": 1, "/pik/base_pose": 1, "/pik/status": 2,
+                     "/robot_description": 1,
                      "/contact_planner/plan": 3, "/trajectory/joint_trajectory": 1,
                      "/trajectory/active_stance": 2, "/trajectory/status": 2,
                      "/stabilizer/state": 1}
@@ -85,9 +87,12 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    if args.scenario == PIK:
-        return run_pik(args)
-    return run_pipeline(args)
+    try:
+        with terminate_as_interrupt():
+            return run_pik(args) if args.scenario == PIK else run_pipeline(args)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the child processes were stopped
+        print("stance demo: interrupted", file=sys.stderr)
+        return 130
 
 
 def run_pik(args) -> int:

@@ -9,8 +9,9 @@ Time is in seconds from the first message of the bag (log time). A figure whose 
 is reported as an error (exit code 1); the others are still written.
 
 `plot_pipeline` draws the figures of an executed contact plan from a stance_tools.check_run
-report (stance demo --scenario SCENE): contacts.png, stabilizer.png, joints.png, com.png; time
-there is in seconds from the execution start (header stamps).
+report (stance demo --scenario SCENE): contacts.png, stabilizer.png, joints.png, com.png, and
+damping.png and errors.png when the bag has /pik/status; time there is in seconds from the
+execution start (header stamps).
 """
 
 import math
@@ -33,6 +34,7 @@ JOINT_STATES = "/joint_states"
 ROBOT_DESCRIPTION = "/robot_description"
 SOLVER_STATUS = "/pik/status"
 LOG_FLOOR = 1e-16  # errors are drawn no lower than this on log axes (exact zeros)
+SERIES_GAP = 0.25  # s without a sample that breaks a curve (the task left the stack)
 
 
 def joint_limits(urdf):
@@ -50,30 +52,35 @@ class Series:
     """Named scalar time series sampled at irregular times (times in s)."""
 
     def __init__(self):
-        self._samples = defaultdict(list)
+        self._times = defaultdict(list)
+        self._values = defaultdict(list)
 
     def add(self, name, time, value):
-        self._samples[name].append((time, value))
+        self._times[name].append(time)
+        self._values[name].append(value)
 
     def extend(self, name, times, values):
-        self._samples[name].extend(zip(times, values))
+        self._times[name].extend(times)
+        self._values[name].extend(values)
 
     def names(self):
-        return list(self._samples)
+        return list(self._times)
 
     def arrays(self, name):
         """(times in s, values) as numpy arrays."""
-        times, values = zip(*self._samples[name])
-        return np.asarray(times), np.asarray(values, dtype=float)
+        return np.asarray(self._times[name]), np.asarray(self._values[name], dtype=float)
 
     def __bool__(self):
-        return bool(self._samples)
+        return bool(self._times)
 
 
 class Run:
-    """What the figures need from a bag, read in one pass."""
+    """What the figures need from a bag, read in one pass. Times in s from origin_ns (log
+    time, ns; default: the bag's first message); with `since` (s), only the messages logged
+    from then on are read (a latched description before it is not)."""
 
-    def __init__(self, bag):
+    def __init__(self, bag, origin_ns=None, since=None,
+                 topics=(JOINT_STATES, ROBOT_DESCRIPTION, SOLVER_STATUS)):
         self.positions = Series()  # joint name -> position (rad or m)
         self.damping = Series()  # joint name -> h in [0, 1]
         self.clamped = Series()  # joint name -> 1.0 where clamped
@@ -81,16 +88,16 @@ class Run:
         self.task_errors = Series()  # task label -> error norm
         self.urdf = None
         self.has_joint_states = self.has_status = False
-        origin = start_time_ns(bag) or 0
-        for topic, log_time, msg in read_messages(
-                bag, [JOINT_STATES, ROBOT_DESCRIPTION, SOLVER_STATUS]):
+        origin = (start_time_ns(bag) or 0) if origin_ns is None else origin_ns
+        first = None if since is None else origin + round(since * 1e9)
+        for topic, log_time, msg in read_messages(bag, topics, start_time_ns=first):
             t = (log_time - origin) * 1e-9
-            if topic == JOINT_STATES:
+            if topic == ROBOT_DESCRIPTION:
+                self.urdf = msg.data
+            elif topic == JOINT_STATES:
                 self.has_joint_states = True
                 for name, position in zip(msg.name, msg.position):
                     self.positions.add(name, t, position)
-            elif topic == ROBOT_DESCRIPTION:
-                self.urdf = msg.data
             else:
                 self._add_status(t, msg)
 
@@ -156,9 +163,9 @@ ENVELOPE_WINDOW = 0.05  # s: h is non-zero only while a joint heads toward its l
                         # raw samples flicker; curves show the maximum over this window
 
 
-def plot_damping(run, path):
+def plot_damping(run, path, time_label="time (s)"):
     """h(t) of the most damped joints (window maximum), and a time x joint heat map of h
-    (every sample) for all joints."""
+    (maximum per time bin) for all joints."""
     names = run.damping.names()
     damped = {n: run.damping.arrays(n)[1].mean() for n in names
               if run.damping.arrays(n)[1].max() > 0.0}
@@ -187,14 +194,13 @@ def plot_damping(run, path):
     top.set_ylabel("h")
     top.grid(alpha=0.3)
 
-    bottom.set_xlabel("time (s)")
+    bottom.set_xlabel(time_label)
     bottom.set_title("h per joint", fontsize=10)
     if names:
-        times, h = heat_map(run.damping, names)
-        image = bottom.pcolormesh(times, np.arange(len(names) + 1), h, cmap="magma_r",
-                                  vmin=0.0, vmax=1.0, shading="flat")
+        (start, end), h = heat_map(run.damping, names)
+        image = bottom.imshow(h, cmap="magma_r", vmin=0.0, vmax=1.0, aspect="auto",
+                              interpolation="nearest", extent=(start, end, len(names), 0))
         bottom.set_yticks(np.arange(len(names)) + 0.5, names, fontsize=6)
-        bottom.invert_yaxis()
         fig.colorbar(image, ax=bottom, label="h", pad=0.01)
         top.set_xlim(bottom.get_xlim())
     else:
@@ -204,30 +210,58 @@ def plot_damping(run, path):
 
 
 def window_maximum(times, values, window):
-    """Maximum of values over the trailing `window` seconds at each sample."""
+    """Maximum of values over the trailing `window` seconds at each sample (times sorted):
+    a sparse table, table[j] = max of the 2^k samples up to j, and each sample's window is
+    the union of two such spans."""
     start = np.searchsorted(times, times - window)
-    return np.array([values[first:last + 1].max() for last, first in enumerate(start)])
+    level = np.log2(np.arange(len(times)) - start + 1).astype(int)  # floor: 2^k <= width
+    table = np.asarray(values, dtype=float).copy()
+    result = np.empty(len(table))
+    for k in range(int(level.max(initial=0)) + 1):
+        if k:
+            half = 2 ** (k - 1)
+            table[half:] = np.maximum(table[half:], table[:-half])
+        at = np.flatnonzero(level == k)
+        result[at] = np.maximum(table[at], table[start[at] + 2 ** k - 1])
+    return result
+
+
+HEAT_MAP_COLUMNS = 2000  # time bins of the h heat map at most (each shows its maximum)
 
 
 def heat_map(series, names):
-    """(cell edges in s, h[joint, cell]) on the union of the sample times; NaN where a joint
+    """((start, end) of the bins in s, h[joint, bin]): the maximum of each joint's h per time
+    bin from the first sample to the last, at most HEAT_MAP_COLUMNS bins; NaN where a joint
     has no sample."""
-    times = np.unique(np.concatenate([series.arrays(n)[0] for n in names]))
-    values = np.full((len(names), len(times)), np.nan)
-    for row, name in enumerate(names):
-        t, v = series.arrays(name)
-        values[row, np.searchsorted(times, t)] = v
-    step = np.diff(times).min() if len(times) > 1 else 1.0
-    return np.append(times, times[-1] + step), values
+    arrays = [series.arrays(name) for name in names]
+    start = min(times[0] for times, _ in arrays)
+    end = max(times[-1] for times, _ in arrays)
+    columns = max(1, min(HEAT_MAP_COLUMNS, max(len(times) for times, _ in arrays)))
+    width = (end - start) / columns or 1.0
+    values = np.full((len(names), columns), np.nan)
+    for row, (times, h) in enumerate(arrays):
+        index = np.minimum(((times - start) / width).astype(int), columns - 1)
+        np.fmax.at(values[row], index, h)
+    return (start, start + columns * width), values
 
 
-def plot_errors(run, path):
+LEGEND_ENTRIES = 12  # curves per panel beyond which levels are merged per priority and
+#                     tasks per name (a contact plan changes the stack at every stance)
+
+
+def plot_errors(run, path, time_label="time (s)"):
     """Per-level residual norms and per-task error norms over time, log scale."""
     fig, axes = plt.subplots(2, 1, figsize=(11, 7.5), sharex=True, layout="constrained")
-    for ax, series, title in ((axes[0], run.residuals, "Residual norm per priority level"),
-                              (axes[1], run.task_errors, "Error norm per task")):
+    panels = ((axes[0], run.residuals, lambda label: label.split(":")[0],
+               "Residual norm per priority level", "priority"),
+              (axes[1], run.task_errors, lambda label: label.rsplit(" (P", 1)[0],
+               "Error norm per task", "task name"))
+    for ax, series, key, title, merged_by in panels:
+        if len(series.names()) > LEGEND_ENTRIES:
+            series = merged(series, key)
+            title += f" (one curve per {merged_by} across stack changes)"
         for label in series.names():
-            times, values = series.arrays(label)
+            times, values = with_gaps(*series.arrays(label))
             ax.plot(times, np.maximum(values, LOG_FLOOR), lw=1.0, label=label)
         ax.set_yscale("log")
         ax.set_title(title, fontsize=10)
@@ -236,8 +270,29 @@ def plot_errors(run, path):
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     axes[0].set_ylabel("residual (task units)")
     axes[1].set_ylabel("error (m or rad)")
-    axes[1].set_xlabel("time (s)")
+    axes[1].set_xlabel(time_label)
     save(fig, path)
+
+
+def merged(series, key):
+    """A Series with one curve per key(label) of series: its curves' samples, time-sorted."""
+    gathered = Series()
+    for label in series.names():
+        gathered.extend(key(label), *series.arrays(label))
+    result = Series()
+    for label in gathered.names():
+        times, values = gathered.arrays(label)
+        order = np.argsort(times, kind="stable")
+        result.extend(label, times[order], values[order])
+    return result
+
+
+def with_gaps(times, values, gap=SERIES_GAP):
+    """(times, values) with a NaN inserted wherever no sample came for more than gap s, so
+    that a line is broken there (a task or level absent from the stack meanwhile)."""
+    breaks = np.flatnonzero(np.diff(times) > gap) + 1
+    return (np.insert(times.astype(float), breaks, np.nan),
+            np.insert(values.astype(float), breaks, np.nan))
 
 
 def save(fig, path):
@@ -292,7 +347,8 @@ def run(args):
 
 def plot_pipeline(bag, report, scene_spec, output):
     """contacts.png, stabilizer.png, joints.png (moving joints) and com.png of a run checked
-    by stance_tools.check_run (report: its Report); returns the paths written."""
+    by stance_tools.check_run (report: its Report), and damping.png and errors.png from
+    pik_node's status when the bag has it; returns the paths written."""
     from stance.planning.scene import load_scene
 
     output = Path(output)
@@ -303,6 +359,12 @@ def plot_pipeline(bag, report, scene_spec, output):
     plot_stabilizer(report, paths[1])
     plot_execution_joints(report, paths[2])
     plot_com(report, scene, paths[3])
+    status = Run(bag, origin_ns=round(report.run.stamps[0] * 1e9), since=-JOINTS_BEFORE,
+                 topics=[SOLVER_STATUS])
+    if status.has_status:
+        paths += [output / "damping.png", output / "errors.png"]
+        plot_damping(status, paths[-2], "time from execution start (s)")
+        plot_errors(status, paths[-1], "time from execution start (s)")
     return paths
 
 
