@@ -28,6 +28,7 @@ from stance_msgs.msg import ContactStance, StancePlan
 from stance_tools.processes import ProcessGroup
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
+from trajectory_node.node import STATUS_HISTORY
 
 STEPS = 10               # samples_per_transition
 JOINT_TOLERANCE = 0.05   # rad: pik_node's joints against the plan's last witness
@@ -204,6 +205,29 @@ def test_flat_steps_plan_is_executed_through_pik_node(graph, flat_steps_plan):
     assert list(probe.joint_state.name) == list(trajectory.joint_names)
     assert probe.tracking_error(trajectory) < TRACKING_TOLERANCE
     assert node.poll() is None
+
+
+def test_a_late_status_reader_receives_the_recent_statuses_in_order(graph, flat_steps_plan):
+    """The status history is what repairs a reader's lost status (a depth-1 history let
+    the next status replace it); a late joiner sees it as the last STATUS_HISTORY."""
+    node, probe = graph
+    robot, scene, plan = flat_steps_plan
+    counts = probe.counts()
+    probe.publish_plan(plan_msg(robot, scene, Plan(plan.scene, plan.robot, plan.stances[:3])))
+    probe.wait_status(counts, "done", 60)
+    with probe.lock:
+        published = [msg.data for msg in probe.statuses][-STATUS_HISTORY:]
+    late = BackgroundNode("late_status_reader")
+    received = []
+    late.node.create_subscription(String, "/trajectory/status",
+                                  lambda msg: received.append(msg.data), HISTORY)
+    late.start_spinning()
+    try:
+        wait_until(lambda: len(received) >= len(published), 20,
+                   what=f"{len(published)} statuses for the late reader")
+        assert received == published
+    finally:
+        late.close()
 
 
 @pytest.mark.parametrize("case, words", [

@@ -77,7 +77,7 @@ from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
@@ -99,6 +99,12 @@ ACTIVE_STANCE_TOPIC = "/trajectory/active_stance"
 STATUS_TOPIC = "/trajectory/status"
 PIK_STATUS_TOPIC = "/pik/status"
 LATEST = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+# Statuses are events: a reader whose copy of one was lost gets it again from this history
+# (with depth 1 the next status replaced it before the repair, and a pause went unseen).
+# A late joiner receives the last STATUS_HISTORY statuses; the newest is the current state.
+STATUS_HISTORY = 20
+STATUS_QOS = QoSProfile(depth=STATUS_HISTORY, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RESEND_PERIOD = 1.0  # s without an answer before a service request is sent again
 TIMINGS = ("sinusoidal", "time_optimal")
 
@@ -214,7 +220,7 @@ class TrajectoryNode(Node):
         self.trajectory_pub = self.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, LATCHED)
         self.active_stance_pub = self.create_publisher(ContactStance, ACTIVE_STANCE_TOPIC,
                                                        RELIABLE)
-        self.status_pub = self.create_publisher(String, STATUS_TOPIC, LATCHED)
+        self.status_pub = self.create_publisher(String, STATUS_TOPIC, STATUS_QOS)
         self.set_configuration_client = self.create_client(SetConfiguration,
                                                            "/pik/set_configuration")
         self.set_stack_client = self.create_client(SetStack, "/pik/set_stack")
