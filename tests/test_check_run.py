@@ -5,6 +5,7 @@ passes, exit 0. On a
 rewritten copy of the bag with a joint pushed beyond its limit, and on altered arrays fed
 to the check functions, the check concerned fails (exit 1 naming it)."""
 
+import dataclasses
 import time
 
 import numpy as np
@@ -216,3 +217,27 @@ def test_altered_arrays_fail_the_check_concerned(report):
     assert times[middle + 2] - times[middle] < check_run.STABILIZER_DELAY
     assert check_run.check_stabilizer(initial, blip, times, blipped, run.stamps[0]).passed
     assert not check_run.check_stabilizer(initial, [], times, flipped, run.stamps[0]).passed
+
+
+def test_lagging_joint_states_are_checked_on_the_support_they_track(report):
+    """Joint states delayed by LAG more than recorded (a loaded pik_node): tracking_delays
+    measures the extra lag, and the equilibrium check takes the support the command had
+    at the instant each state tracks. Checked on the stamps' support, the same states
+    fail: a contact released on time is still leaned on."""
+    run = report.run
+    robot = Robot.load("talos")
+    scene = load_scene("flat_steps", robot)
+    lag = 0.1
+    source = np.clip(np.searchsorted(run.times, run.times - lag), 0, len(run.times) - 1)
+    delayed = dataclasses.replace(run, joints=run.joints[source], q=run.q[source])
+    chosen = check_run.equilibrium_samples(run.times, run.stamps)
+    chosen = chosen[run.times[chosen] > run.stamps[0] + lag]
+    recorded = check_run.tracking_delays(run, chosen)
+    measured = check_run.tracking_delays(delayed, chosen)
+    assert np.median(measured - recorded) == pytest.approx(lag, abs=2 * check_run.DELAY_STEP)
+    com = check_run.centers_of_mass(robot, delayed.q)
+    check = check_run.check_equilibrium(delayed, robot, scene, com)
+    assert check.passed, check.failures
+    assert max(float(row[4]) for row in check.rows) >= lag
+    untracked = dataclasses.replace(delayed, trajectory=None)
+    assert not check_run.check_equilibrium(untracked, robot, scene, com).passed

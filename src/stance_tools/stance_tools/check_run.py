@@ -23,7 +23,10 @@ Checks (one table each):
 - equilibrium: static equilibrium (equilibrium.contacts_equilibrium) of the CoM of the
   joint states on the supporting contacts, every EQUILIBRIUM_PERIOD s: during a transition
   the contacts common to both stances (they all support, as in the interpolation), after
-  the last stance its supporting contacts;
+  the last stance its supporting contacts. The support is the command's at the instant the
+  joint state tracks: pik_node follows the commanded trajectory with a lag (its gains,
+  periods missed under load), so a state sampled just after a contact's release still
+  leans on it (tracking_delays, at most MAX_TRACKING_DELAY);
 - stabilizer: the enabled flips of /stabilizer/state are StabilizerGate.schedule's on the
   executed stances, each within STABILIZER_DELAY of its transition's start or end. A flip
   undone within STABILIZER_DELAY (a support released and a non-coplanar contact created
@@ -62,6 +65,11 @@ VELOCITY_WINDOW = 0.05
 # acceleration limit) reaches ~200 on flat_steps with Talos
 C1_ACCELERATION_BOUND = 500.0
 EQUILIBRIUM_PERIOD = 0.1         # s between two equilibrium samples
+MAX_TRACKING_DELAY = 0.3         # s: the largest lag of the joint states looked for
+DELAY_STEP = 0.005               # s: resolution of the lag estimate
+# rad: commanded states this close to the best match are as good: at rest or at the slow
+# start of a transition the smallest such lag is taken (the support of the latest command)
+DELAY_TOLERANCE = 1e-3
 STABILIZER_DELAY = 0.15          # s: a flip against its scheduled time
 
 
@@ -86,8 +94,9 @@ class Execution:
     joint_names (J,): /joint_states order; times (N,) s; joints (N, J) rad; q (N, nq):
     Pinocchio configurations (base pose of the same stamp); stances: library Stance per
     active stance (witness q unset) and stamps (K,) s; trajectory: (times (M,) s from
-    its start, positions (M, J'), velocities (M, J'), joint names) or None; stabilizer:
-    (times (L,) s, enabled (L,) bool, blend (L,))."""
+    its start, positions (M, J'), velocities (M, J'), joint names) or None, and its start
+    trajectory_start (s, its stamp; None without one); stabilizer: (times (L,) s, enabled
+    (L,) bool, blend (L,))."""
 
     joint_names: list
     times: np.ndarray
@@ -96,6 +105,7 @@ class Execution:
     stances: list
     stamps: np.ndarray
     trajectory: tuple | None
+    trajectory_start: float | None
     stabilizer: tuple
 
 
@@ -170,6 +180,7 @@ def read_execution(bag, robot, scene) -> Execution:
                      [Stance(contacts, None) for _, contacts in stances],
                      np.array([stamp for stamp, _ in stances]),
                      None if trajectory is None else _trajectory_arrays(trajectory),
+                     None if trajectory is None else stamp_seconds(trajectory.header),
                      stabilizer)
 
 
@@ -327,28 +338,55 @@ def centers_of_mass(robot, q) -> np.ndarray:
 
 
 def check_equilibrium(run: Execution, robot, scene, com) -> Check:
-    """Static equilibrium of com (N, 3) on the supports of run (equilibrium_samples); one
-    row per stance k (its transition k -> k + 1)."""
+    """Static equilibrium of com (N, 3) on the supports of run (equilibrium_samples) at the
+    instants the joint states track (tracking_delays); one row per stance k (its
+    transition k -> k + 1) with its largest lag."""
     import pinocchio as pin
     from stance.planning.equilibrium import contacts_equilibrium
 
-    check = Check("equilibrium", ("from stance", "support", "samples", "min margin (N)"))
+    check = Check("equilibrium", ("from stance", "support", "samples", "min margin (N)",
+                                  "max lag (s)"))
     mass = pin.computeTotalMass(robot.model)
     chosen = equilibrium_samples(run.times, run.stamps)
-    margins = {}
-    for i in chosen:
-        k, support = support_at(run.stances, run.stamps, run.times[i])
+    delays = tracking_delays(run, chosen)
+    rows = {}
+    for i, delay in zip(chosen, delays):
+        tracked = max(run.times[i] - delay, run.stamps[0])
+        k, support = support_at(run.stances, run.stamps, tracked)
         result = contacts_equilibrium(support, scene, com[i], mass)
         spots = ", ".join(sorted(c.spot for c in support))
-        count, worst = margins.get(k, (spots, 0, math.inf))[1:]
-        margins[k] = (spots, count + 1, min(worst, result.margin))
+        count, worst, lag = rows.get(k, (spots, 0, math.inf, 0.0))[1:]
+        rows[k] = (spots, count + 1, min(worst, result.margin), max(lag, delay))
         if not result.feasible:
-            check.failures.append(f"t = {run.times[i] - run.stamps[0]:.2f} s, from stance {k} "
-                                  f"on {spots}: no static equilibrium (margin "
+            check.failures.append(f"t = {run.times[i] - run.stamps[0]:.2f} s (tracking "
+                                  f"{tracked - run.stamps[0]:.2f} s), from stance {k} on "
+                                  f"{spots}: no static equilibrium (margin "
                                   f"{result.margin:.1f} N)")
-    for k, (spots, count, worst) in sorted(margins.items()):
-        check.rows.append((k, spots, count, f"{worst:.1f}"))
+    for k, (spots, count, worst, lag) in sorted(rows.items()):
+        check.rows.append((k, spots, count, f"{worst:.1f}", f"{lag:.3f}"))
     return check
+
+
+def tracking_delays(run: Execution, indices) -> np.ndarray:
+    """How late (s) the joint states at indices follow the commanded trajectory: per
+    sample, the smallest multiple of DELAY_STEP in [0, MAX_TRACKING_DELAY] whose commanded
+    joints (C1 Hermite interpolation of the waypoints) are within DELAY_TOLERANCE (max over
+    joints, rad) of the closest ones. Zeros without a trajectory. A pik_node pause gives the
+    trajectory a new start: samples before it are measured against that new time base."""
+    from scipy.interpolate import CubicHermiteSpline
+
+    indices = np.asarray(indices, dtype=int)
+    if run.trajectory is None or not len(indices):
+        return np.zeros(len(indices))
+    times, positions, velocities, names = run.trajectory
+    columns = [run.joint_names.index(name) for name in names]
+    commanded = CubicHermiteSpline(times, positions, velocities, axis=0)
+    delays = np.arange(0.0, MAX_TRACKING_DELAY + 0.5 * DELAY_STEP, DELAY_STEP)
+    when = run.times[indices, None] - run.trajectory_start - delays        # (S, D)
+    errors = np.abs(commanded(np.clip(when, times[0], times[-1]))
+                    - run.joints[indices][:, None, columns]).max(axis=2)  # (S, D)
+    close = errors <= errors.min(axis=1, keepdims=True) + DELAY_TOLERANCE
+    return delays[np.argmax(close, axis=1)]
 
 
 def equilibrium_samples(times, stamps) -> np.ndarray:
