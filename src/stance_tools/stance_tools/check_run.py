@@ -11,7 +11,8 @@ k + 1's. Positions are in the world frame (m), joints in rad.
 Checks (one table each):
 - contacts: every contact's spot (forward kinematics of the joint states and base pose)
   stays within CONTACT_TOLERANCE of its target from when its stance is reached until the
-  transition that moves that spot starts;
+  transition that moves that spot starts, in the command's time the joint states track
+  (as for equilibrium below);
 - joint_limits: every joint state inside the URDF position limits (the whole bag);
 - joint_velocity: finite differences of the joint states (from execution start on) over
   VELOCITY_WINDOW s (pik_node's stamps jitter by a period) under the URDF velocity limits
@@ -26,7 +27,8 @@ Checks (one table each):
   the last stance its supporting contacts. The support is the command's at the instant the
   joint state tracks: pik_node follows the commanded trajectory with a lag (its gains,
   periods missed under load), so a state sampled just after a contact's release still
-  leans on it (tracking_delays, at most MAX_TRACKING_DELAY);
+  leans on it, and one sampled just after a landing has not landed yet (tracking_delays,
+  at most MAX_TRACKING_DELAY);
 - stabilizer: the enabled flips of /stabilizer/state are StabilizerGate.schedule's on the
   executed stances, each within STABILIZER_DELAY of its transition's start or end. A flip
   undone within STABILIZER_DELAY (a support released and a non-coplanar contact created
@@ -70,6 +72,7 @@ DELAY_STEP = 0.005               # s: resolution of the lag estimate
 # rad: commanded states this close to the best match are as good: at rest or at the slow
 # start of a transition the smallest such lag is taken (the support of the latest command)
 DELAY_TOLERANCE = 1e-3
+DELAY_CHUNK = 2000               # samples per lag evaluation (bounds its memory)
 STABILIZER_DELAY = 0.15          # s: a flip against its scheduled time
 
 
@@ -232,10 +235,12 @@ def spot_positions(robot, scene, q) -> dict:
 
 
 def check_contacts(run: Execution, scene, positions) -> Check:
-    """Spot positions (spot_positions of run.q) against their held contacts' targets."""
+    """Spot positions (spot_positions of run.q) against the targets of the contacts held
+    at the instant each joint state tracks (tracking_delays)."""
     check = Check("contacts", ("spot", "surface", "stances", "samples", "max error (mm)"))
+    tracked = run.times - tracking_delays(run, np.arange(len(run.times)))
     for contact, first, last, start, end in held_intervals(run.stances, run.stamps):
-        inside = (run.times >= start) & (run.times <= end)
+        inside = (tracked >= start) & (tracked <= end)
         target = contact.spot_target(scene.surfaces[contact.surface]).translation
         errors = np.linalg.norm(positions[contact.spot][inside] - target, axis=1)
         worst = float(errors.max()) if inside.any() else math.nan
@@ -376,17 +381,21 @@ def tracking_delays(run: Execution, indices) -> np.ndarray:
     from scipy.interpolate import CubicHermiteSpline
 
     indices = np.asarray(indices, dtype=int)
-    if run.trajectory is None or not len(indices):
-        return np.zeros(len(indices))
+    found = np.zeros(len(indices))
+    if run.trajectory is None:
+        return found
     times, positions, velocities, names = run.trajectory
     columns = [run.joint_names.index(name) for name in names]
     commanded = CubicHermiteSpline(times, positions, velocities, axis=0)
     delays = np.arange(0.0, MAX_TRACKING_DELAY + 0.5 * DELAY_STEP, DELAY_STEP)
-    when = run.times[indices, None] - run.trajectory_start - delays        # (S, D)
-    errors = np.abs(commanded(np.clip(when, times[0], times[-1]))
-                    - run.joints[indices][:, None, columns]).max(axis=2)  # (S, D)
-    close = errors <= errors.min(axis=1, keepdims=True) + DELAY_TOLERANCE
-    return delays[np.argmax(close, axis=1)]
+    for begin in range(0, len(indices), DELAY_CHUNK):   # (S, D, J) arrays of bounded size
+        chunk = indices[begin:begin + DELAY_CHUNK]
+        when = run.times[chunk, None] - run.trajectory_start - delays         # (S, D)
+        errors = np.abs(commanded(np.clip(when, times[0], times[-1]))
+                        - run.joints[chunk][:, None, columns]).max(axis=2)   # (S, D)
+        close = errors <= errors.min(axis=1, keepdims=True) + DELAY_TOLERANCE
+        found[begin:begin + DELAY_CHUNK] = delays[np.argmax(close, axis=1)]
+    return found
 
 
 def equilibrium_samples(times, stamps) -> np.ndarray:
