@@ -365,7 +365,10 @@ class TrajectoryNode(Node):
 
     def _stream_plan(self, msg, plan, scene, planner, trajectory, boundaries):
         stack, held = self._transition(scene, planner, plan, 0)
-        sent = None                               # the stack pik_node holds
+        # pik_node holds the first stack before the clock starts: a service round trip
+        # inside the clock (0.1-0.3 s under load) left the robot that far behind at once
+        self._call(self.set_stack_client, stack_request(stack))
+        sent = stack                              # the stack pik_node holds
         start, began = self.get_clock().now(), time.monotonic()
         self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
         self._publish_active(msg, 0, start, 0.0)
