@@ -44,6 +44,7 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -110,6 +111,12 @@ class Execution:
     trajectory: tuple | None
     trajectory_start: float | None
     stabilizer: tuple
+
+    @cached_property
+    def tracked_times(self) -> np.ndarray:
+        """(N,) s: the command's time each joint state tracks, times minus its lag
+        (tracking_delays); computed once for the contacts and equilibrium checks."""
+        return self.times - tracking_delays(self, np.arange(len(self.times)))
 
 
 def stamp_seconds(header) -> float:
@@ -238,7 +245,7 @@ def check_contacts(run: Execution, scene, positions) -> Check:
     """Spot positions (spot_positions of run.q) against the targets of the contacts held
     at the instant each joint state tracks (tracking_delays)."""
     check = Check("contacts", ("spot", "surface", "stances", "samples", "max error (mm)"))
-    tracked = run.times - tracking_delays(run, np.arange(len(run.times)))
+    tracked = run.tracked_times
     for contact, first, last, start, end in held_intervals(run.stances, run.stamps):
         inside = (tracked >= start) & (tracked <= end)
         target = contact.spot_target(scene.surfaces[contact.surface]).translation
@@ -352,11 +359,10 @@ def check_equilibrium(run: Execution, robot, scene, com) -> Check:
     check = Check("equilibrium", ("from stance", "support", "samples", "min margin (N)",
                                   "max lag (s)"))
     mass = pin.computeTotalMass(robot.model)
-    chosen = equilibrium_samples(run.times, run.stamps)
-    delays = tracking_delays(run, chosen)
     rows = {}
-    for i, delay in zip(chosen, delays):
-        tracked = max(run.times[i] - delay, run.stamps[0])
+    for i in equilibrium_samples(run.times, run.stamps):
+        delay = run.times[i] - run.tracked_times[i]
+        tracked = max(run.tracked_times[i], run.stamps[0])
         k, support = support_at(run.stances, run.stamps, tracked)
         result = contacts_equilibrium(support, scene, com[i], mass)
         spots = ", ".join(sorted(c.spot for c in support))
