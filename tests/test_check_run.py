@@ -223,11 +223,15 @@ def test_lagging_joint_states_are_checked_on_the_support_they_track(report):
     """Joint states delayed by `lag` more than recorded (a loaded pik_node): tracking_delays
     measures the extra lag, and the equilibrium and contacts checks take the contacts the
     command had at the instant each state tracks. Checked at the stamps, the same states
-    fail equilibrium: a contact released on time is still leaned on."""
+    fail equilibrium: a contact released on time is still leaned on.
+
+    0.15 s: the worst margin at the stamps was -2 to -23 N at 0.1 s over runs, -41 to
+    -65 N at 0.15 s; the lag tracked (recorded + added, <= 0.2 s) stays well inside
+    MAX_TRACKING_DELAY."""
     run = report.run
     robot = Robot.load("talos")
     scene = load_scene("flat_steps", robot)
-    lag = 0.1
+    lag = 0.15
     source = np.clip(np.searchsorted(run.times, run.times - lag), 0, len(run.times) - 1)
     delayed = dataclasses.replace(run, joints=run.joints[source], q=run.q[source])
     chosen = check_run.equilibrium_samples(run.times, run.stamps)
@@ -241,7 +245,7 @@ def test_lagging_joint_states_are_checked_on_the_support_they_track(report):
     assert max(float(row[4]) for row in check.rows) >= lag
     untracked = dataclasses.replace(delayed, trajectory=None)
     assert not check_run.check_equilibrium(untracked, robot, scene, com).passed
-    # held contacts in tracked time too (at the stamps a 0.1 s lag stays near the 2 mm
-    # tolerance, since a foot lands slowly: which side of it varies from run to run)
+    # held contacts in tracked time too (at the stamps a lag of this size stays near the
+    # 2 mm tolerance, since a foot lands slowly: which side of it varies from run to run)
     positions = {spot: values[source] for spot, values in report.positions.items()}
     assert check_run.check_contacts(delayed, scene, positions).passed
