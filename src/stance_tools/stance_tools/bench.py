@@ -5,6 +5,8 @@
   backend, same robot, stack and targets.
 - levels: cost of a step as priority levels are added, SVD and QP hierarchies side by side
   (Talos, 1 to 4 levels; Panda arm, 2 levels).
+- groups: cost of a step with Talos' hips and shoulders limited as ball / swing joints
+  (the shipped limit file's joint groups) against 1-DoF limits only.
 - node: pik_node's loop rate and latency over DDS (stance_tools.bench_node).
 - plan: the contact planner on the chair scene, ordered sons on and off
   (stance_tools.bench_plan).
@@ -38,6 +40,8 @@ BENCHMARKS = {
             "library step: PIKSolver (none/clamping/progressive, SVD and QP) vs Pink"),
     "levels": (__name__, "add_levels_arguments", "run_levels",
                "step cost per added priority level, SVD vs QP hierarchy (Talos, Panda)"),
+    "groups": (__name__, "add_groups_arguments", "run_groups",
+               "step cost with Talos' joint groups (hips, shoulders) vs 1-DoF limits only"),
     "node": ("stance_tools.bench_node", "add_node_arguments", "run_node",
              "pik_node over DDS: loop rate at 500 Hz, target-to-joint_states latency"),
     "interpolate": ("stance_tools.bench_interpolate", "add_interpolate_arguments",
@@ -111,15 +115,18 @@ class Record:
 
 
 class StanceContender:
-    """PIKSolver.step with one limit strategy, on the SVD hierarchy or (qp) QPHierarchy."""
+    """PIKSolver.step with one limit strategy, on the SVD hierarchy or (qp) QPHierarchy,
+    with the given limit models beyond the 1-DoF joints'."""
 
-    def __init__(self, robot, strategy, specs, targets, start, dt, qp=False, name=None):
+    def __init__(self, robot, strategy, specs, targets, start, dt, qp=False, name=None,
+                 limit_models=()):
         from stance.pik import PIKSolver
         from stance.qp_hierarchy import QPHierarchy
 
         self.name = name or f"stance {strategy}{' qp' if qp else ''}"
         hierarchy = QPHierarchy.for_robot(robot, dt=dt) if qp else None
-        self.solver = PIKSolver(robot, strategy=strategy, dt=dt, hierarchy=hierarchy)
+        self.solver = PIKSolver(robot, strategy=strategy, dt=dt, hierarchy=hierarchy,
+                                limit_models=limit_models)
         self.solver.set_stack(specs, start)
         for spec in specs:
             self.solver.task(spec.name).target = targets[spec.name]
@@ -466,4 +473,53 @@ def run_levels(args) -> int:
         with open(args.json, "w") as output:
             json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt,
                        "hand_offsets": hand_offsets, **results}, output, indent=2)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------
+# groups: Talos' joint groups (limit file) against 1-DoF limits only
+# ---------------------------------------------------------------------------------------
+
+def add_groups_arguments(parser) -> None:
+    add_levels_arguments(parser)
+
+
+def run_groups(args) -> int:
+    from threadpoolctl import threadpool_limits
+
+    from stance.robot import Robot
+    from stance.stack import parse_stack_yaml
+    from stance.swing import load_limit_file
+
+    talos = Robot.from_example_robot_data("talos")
+    start = bench_start(talos)
+    specs = parse_stack_yaml(TALOS_LEVEL_STACK)
+    hand_offsets = {"left_hand": (0.25, 0.2, 0.2), "right_hand": (0.25, -0.2, 0.2)}
+    targets = bench_targets(talos, specs, start, hand_offsets)
+    groups = load_limit_file("talos", talos)
+    with threadpool_limits(limits=1):
+        contenders = [StanceContender(talos, "progressive", specs, targets, start, args.dt,
+                                      name=name, limit_models=models)
+                      for name, models in (("1-DoF limits", ()), ("joint groups", groups))]
+        race(contenders, talos, start, args.warmup)
+        records = race(contenders, talos, start, args.steps)
+    result = {contender.name: {**timing_us(records[contender.name]),
+                               "mean_clamping_iterations":
+                                   float(np.mean(records[contender.name].iterations))}
+              for contender in contenders}
+    ratio = result["joint groups"]["median_us"] / result["1-DoF limits"]["median_us"]
+    print(f"stance bench groups: Talos, feet > CoM xy > both hands > posture, hands moved "
+          f"{hand_offsets} m, progressive clamping, dt {args.dt} s, {args.steps} timed "
+          f"steps after {args.warmup} warm-up, interleaved, one BLAS thread")
+    print(f"{'limits':<16}{'median us':>10}{'p99 us':>10}{'iters':>7}")
+    for name, entry in result.items():
+        print(f"{name:<16}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
+              f"{entry['mean_clamping_iterations']:>7.2f}")
+    print(f"joint groups / 1-DoF limits, median: {ratio:.2f}x (groups: "
+          f"{', '.join(model.name for model in groups)})")
+    if args.json:
+        with open(args.json, "w") as output:
+            json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt,
+                       "hand_offsets": hand_offsets, "ratio": ratio, **result}, output,
+                      indent=2)
     return 0

@@ -1,0 +1,33 @@
+"""`stance bench levels` and `stance bench groups` run a few steps and report what they
+promise: every contender's median and p99, and the ratios they exist for."""
+
+import json
+
+from stance_tools.cli import main as stance
+
+
+def test_bench_groups_reports_both_contenders_and_their_ratio(tmp_path, capsys):
+    output = tmp_path / "groups.json"
+    assert stance(["bench", "groups", "--steps", "30", "--warmup", "5",
+                   "--json", str(output)]) == 0
+    result = json.loads(output.read_text())
+    plain, grouped = result["1-DoF limits"], result["joint groups"]
+    assert 0 < plain["median_us"] <= plain["p99_us"]
+    assert 0 < grouped["median_us"] <= grouped["p99_us"]
+    # four more limit models to ask at every clamping iteration cost something
+    assert result["ratio"] == grouped["median_us"] / plain["median_us"] > 1.0
+    assert "joint groups / 1-DoF limits, median:" in capsys.readouterr().out
+
+
+def test_bench_levels_compares_each_level_count_with_one_less(tmp_path):
+    output = tmp_path / "levels.json"
+    assert stance(["bench", "levels", "--steps", "20", "--warmup", "5",
+                   "--json", str(output)]) == 0
+    talos = json.loads(output.read_text())["talos"]
+    assert set(talos) == {f"{label} {count} levels" for label in ("svd", "qp")
+                          for count in (1, 2, 3, 4)}
+    for name, entry in talos.items():
+        label, count = name.split()[:2]
+        previous = talos.get(f"{label} {int(count) - 1} levels")
+        assert entry["over_one_level_less"] == (
+            None if previous is None else entry["median_us"] / previous["median_us"])
