@@ -15,8 +15,9 @@ from hypothesis import strategies as st
 
 from stance.pik import PIKSolver
 from stance.robot import Robot
-from stance.swing import (JointGroupLimit, LimitFileError, limit_file_path, load_limit_file,
-                          parse_limits, swing_twist)
+from stance.swing import (JointGroupLimit, LimitFileError, _axes_least_squares,
+                          limit_file_path, load_limit_file, parse_limits, rotation_log,
+                          swing_twist)
 
 SWING_TOLERANCE = math.radians(0.5)
 BOUND_TOLERANCE = 1e-9
@@ -78,6 +79,59 @@ def test_a_group_rotation_is_turned_back_into_angles(groups, seed):
         found = model.angles_for(rotation, angles + rng.uniform(-0.3, 0.3, len(angles)))
         error = rotation.T @ model.rotation_and_axes(found)[0]
         assert np.linalg.norm(error - np.eye(3)) < 1e-10, model.name
+
+
+@settings(max_examples=50, deadline=None, derandomize=True, database=None)
+@given(seed=SEEDS, movable=st.sampled_from([(True, True, False), (True, False, True),
+                                            (False, True, True)]))
+def test_two_joints_of_a_group_reach_the_closest_rotation(groups, seed, movable):
+    """With one joint fixed a random rotation is out of reach: angles_for stops where the
+    remaining error is orthogonal to the movable axes (Gauss-Newton's fixed point, reached
+    linearly: 1e-7), closer than it started, and the fixed joint keeps its angle. Full
+    steps used to cycle on the shoulders' nearly aligned yaws, ending farther away."""
+    rng = np.random.default_rng(seed)
+    movable = np.array(movable)
+    for model in groups:
+        start = rng.uniform(model.bounds.lower, model.bounds.upper)
+        target = model.rotation_and_axes(start + rng.uniform(-0.2, 0.2, len(start)))[0]
+        found = model.angles_for(target, start, movable)
+        assert found[~movable] == start[~movable]
+        rotation, axes = model.rotation_and_axes(found)
+        error = pin.log3(target @ rotation.T)
+        assert np.abs(axes[:, movable].T @ error).max() < 1e-7, model.name
+        start_error = pin.log3(target @ model.rotation_and_axes(start)[0].T)
+        assert np.linalg.norm(error) <= np.linalg.norm(start_error), model.name
+
+
+@settings(max_examples=200, deadline=None, derandomize=True, database=None)
+@given(axis=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3).filter(
+           lambda v: np.linalg.norm(v) > 1e-3),
+       angle=st.one_of(st.floats(0.0, np.pi), st.floats(np.pi - 1e-6, np.pi),
+                       st.floats(0.0, 1e-6), st.floats(np.pi / 2 - 1e-6, np.pi / 2 + 1e-6)))
+def test_compiled_rotation_log_is_pinocchios(axis, angle):
+    """rotation_log (angles_for's compiled Gauss-Newton) = pinocchio.log3, near 0, across
+    the quarter turn where it changes formula, and near a half turn."""
+    rotation = pin.exp3(angle * np.asarray(axis) / np.linalg.norm(axis))
+    expected = pin.log3(rotation)
+    found = rotation_log(rotation)
+    if angle > np.pi - 1e-6:  # the axis' sign is free at a half turn: compare rotations
+        np.testing.assert_allclose(pin.exp3(found), rotation, atol=1e-9)
+        assert np.linalg.norm(found) == pytest.approx(np.linalg.norm(expected), abs=1e-9)
+    else:
+        np.testing.assert_allclose(found, expected, atol=1e-9)
+
+
+@pytest.mark.parametrize("axes", [np.eye(3), np.eye(3)[:, :2],
+                                  np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]),
+                                  np.array([[1.0, 1.0], [0.0, 1e-5], [0.0, 0.0]])],
+                         ids=["independent", "two", "dependent", "nearly_dependent"])
+def test_axes_least_squares_is_lapacks_min_norm_solution(axes):
+    """The group solve's small least squares (normal equations, or LAPACK's SVD when the
+    axes are (nearly) dependent) gives numpy's min-norm least-squares solution."""
+    error = np.array([0.3, -0.2, 0.1])
+    expected = np.linalg.lstsq(axes, error, rcond=1e-9)[0]
+    np.testing.assert_allclose(_axes_least_squares(np.ascontiguousarray(axes), error),
+                               expected, atol=1e-9)
 
 
 def group_file(joints, kind="ball", **extra) -> dict:

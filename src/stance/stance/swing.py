@@ -461,7 +461,9 @@ class SwingLimit(BallLimit):
 
 REVOLUTE_AXES = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2}
 GROUP_SOLVE_ITERATIONS = 20
-GROUP_SOLVE_TOLERANCE = 1e-12  # rad: rotation error of the angles found for a rotation
+GROUP_STEP_HALVINGS = 30      # a Gauss-Newton step halved at most this often
+GROUP_SOLVE_TOLERANCE = 1e-12  # rad: rotation error, or last step, of the angles found
+AXES_CONDITION = 1e-6         # Cholesky pivot^2 below which the group's axes count as dependent
 KEEP_INSIDE_ROUNDS = 3         # alternate projections onto the cone and the joints' bounds
 
 
@@ -471,16 +473,124 @@ def _group_rotation(placements, axis_index, angles):
     rotation = np.eye(3)
     axes = np.zeros((3, len(angles)))
     for k in range(len(angles)):
-        rotation = rotation @ placements[k]
+        rotation = _product3(rotation, placements[k])
         axis = axis_index[k]
         axes[:, k] = rotation[:, axis]
         cosine, sine = math.cos(angles[k]), math.sin(angles[k])
-        turn = np.eye(3)
         first, second = (axis + 1) % 3, (axis + 2) % 3
-        turn[first, first], turn[first, second] = cosine, -sine
-        turn[second, first], turn[second, second] = sine, cosine
-        rotation = rotation @ turn
+        for row in range(3):   # rotation @ Rot(axis, angle): two columns turn
+            a, b = rotation[row, first], rotation[row, second]
+            rotation[row, first], rotation[row, second] = (cosine * a + sine * b,
+                                                           cosine * b - sine * a)
     return rotation, axes
+
+
+@numba.njit(cache=True)
+def _product3(a, b):
+    """a @ b for 3x3 matrices without a BLAS call (its overhead dwarfs 27 products)."""
+    product = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            product[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return product
+
+
+@numba.njit(cache=True)
+def _group_angles(placements, axis_index, target, start, movable):
+    """JointGroupLimit.angles_for compiled (movable: indices of the joints it may move).
+    A Gauss-Newton step that does not lower the rotation error is halved: with a joint held,
+    the target may be out of reach, where full steps can overshoot (nearly aligned axes,
+    like the shoulder's two yaws) and cycle."""
+    angles = start.copy()
+    rotation, axes = _group_rotation(placements, axis_index, angles)
+    error = rotation_log(_product3(target, rotation.T))  # group frame
+    size = np.sqrt(np.sum(error * error))
+    for _ in range(GROUP_SOLVE_ITERATIONS):
+        if size <= GROUP_SOLVE_TOLERANCE:
+            break
+        step = _axes_least_squares(np.ascontiguousarray(axes[:, movable]), error)
+        lowered = False
+        for _ in range(GROUP_STEP_HALVINGS):
+            trial = angles.copy()
+            trial[movable] += step
+            trial_rotation, trial_axes = _group_rotation(placements, axis_index, trial)
+            trial_error = rotation_log(_product3(target, trial_rotation.T))
+            trial_size = np.sqrt(np.sum(trial_error * trial_error))
+            if trial_size < size:
+                lowered = True
+                break
+            step *= 0.5
+        if not lowered:
+            break   # no step lowers the error: the closest rotation the joints reach
+        angles, axes, error, size = trial, trial_axes, trial_error, trial_size
+        if np.sqrt(np.sum(step * step)) <= GROUP_SOLVE_TOLERANCE:
+            break
+    return start + (np.remainder(angles - start + np.pi, 2.0 * np.pi) - np.pi)
+
+
+@numba.njit(cache=True)
+def _axes_least_squares(axes, error):
+    """Least-squares angles (m) turning about unit `axes` (3 x m, m <= 3) by `error` (3),
+    min-norm when the axes are dependent: the normal equations by Cholesky while they are
+    well conditioned (a LAPACK call costs more than the solve), else LAPACK's SVD."""
+    count = axes.shape[1]
+    gram = np.zeros((count, count))
+    for i in range(count):
+        for j in range(count):
+            gram[i, j] = axes[0, i] * axes[0, j] + axes[1, i] * axes[1, j] + \
+                axes[2, i] * axes[2, j]
+    low = np.zeros((count, count))
+    for i in range(count):
+        for j in range(i + 1):
+            acc = gram[i, j]
+            for k in range(j):
+                acc -= low[i, k] * low[j, k]
+            if i == j:
+                if acc <= AXES_CONDITION:
+                    return np.linalg.lstsq(axes, error, rcond=1e-9)[0]
+                low[i, i] = math.sqrt(acc)
+            else:
+                low[i, j] = acc / low[j, j]
+    solution = np.zeros(count)
+    for i in range(count):
+        solution[i] = axes[0, i] * error[0] + axes[1, i] * error[1] + axes[2, i] * error[2]
+    for i in range(count):
+        for k in range(i):
+            solution[i] -= low[i, k] * solution[k]
+        solution[i] /= low[i, i]
+    for i in range(count - 1, -1, -1):
+        for k in range(i + 1, count):
+            solution[i] -= low[k, i] * solution[k]
+        solution[i] /= low[i, i]
+    return solution
+
+
+@numba.njit(cache=True)
+def rotation_log(rotation):
+    """Rotation vector (rad) of a rotation matrix, as pinocchio.log3, in compiled code:
+    theta / sin(theta) times the skew part's vector, or from the symmetric part
+    (1 - cos theta) a a^T past a quarter turn, where the skew part fades."""
+    cosine = min(max(0.5 * (rotation[0, 0] + rotation[1, 1] + rotation[2, 2] - 1.0), -1.0),
+                 1.0)
+    skew = 0.5 * np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
+                           rotation[1, 0] - rotation[0, 1]])          # sin(theta) a
+    sine = np.sqrt(np.sum(skew * skew))
+    angle = math.atan2(sine, cosine)
+    if cosine >= 0.0:
+        return skew * (angle / sine if sine > 1e-8 else 1.0 + angle * angle / 6.0)
+    axis = np.empty(3)
+    largest = 0
+    for i in range(3):
+        if rotation[i, i] > rotation[largest, largest]:
+            largest = i
+    axis[largest] = math.sqrt(max((rotation[largest, largest] - cosine) / (1.0 - cosine), 0.0))
+    for i in range(3):
+        if i != largest:
+            axis[i] = (0.5 * (rotation[i, largest] + rotation[largest, i])
+                       / ((1.0 - cosine) * axis[largest]))
+    if np.sum(axis * skew) < 0.0:
+        axis = -axis
+    return angle * axis
 
 
 class JointGroupLimit(SwingTwistRule):
@@ -543,14 +653,8 @@ class JointGroupLimit(SwingTwistRule):
         closest to the start)."""
         start = np.asarray(start, dtype=float)
         movable = np.ones(len(start), dtype=bool) if movable is None else movable
-        angles = start.copy()
-        for _ in range(GROUP_SOLVE_ITERATIONS):
-            rotation, axes = self.rotation_and_axes(angles)
-            error = pin.log3(target @ rotation.T)  # group frame
-            if np.linalg.norm(error) <= GROUP_SOLVE_TOLERANCE:
-                break
-            angles[movable] += np.linalg.lstsq(axes[:, movable], error, rcond=1e-9)[0]
-        return start + np.remainder(angles - start + np.pi, 2.0 * np.pi) - np.pi
+        return _group_angles(self.placements, self.axis_index, np.asarray(target, dtype=float),
+                             start, np.flatnonzero(movable))
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv). Joints
@@ -558,12 +662,13 @@ class JointGroupLimit(SwingTwistRule):
         where the swing / twist rule or their own bounds alter them."""
         angles, variation = q[self.q_index], dq[self.v_index].copy()
         movable = free[self.v_index]
-        if not np.any(movable) or np.linalg.norm(variation[movable]) <= NEGLIGIBLE_VARIATION:
+        moving = variation[movable]
+        if not len(moving) or math.sqrt(moving @ moving) <= NEGLIGIBLE_VARIATION:
             return _nothing()
         h, altered = np.zeros(len(angles)), np.zeros(len(angles), dtype=bool)
         target = None
-        rotation = self.rotation_and_axes(angles)[0]
-        if self.may_reach(angles.tobytes(), rotation, float(np.sum(np.abs(variation))),
+        rotation = _group_rotation(self.placements, self.axis_index, angles)[0]
+        if self.may_reach(angles.tobytes(), rotation, float(np.abs(variation).sum()),
                           self.thickness):
             target, swing_h, twist_h = self.altered(
                 rotation, self.rotation_and_axes(angles + variation)[0], progressive)
@@ -571,11 +676,13 @@ class JointGroupLimit(SwingTwistRule):
             reached = self.angles_for(target, angles, movable)
             variation[movable] = reached[movable] - angles[movable]
             h[movable], altered[movable] = max(swing_h, twist_h), True
-        own = self.bounds.decide(angles, variation, movable, progressive)
-        variation[own.index] = own.dq
-        h[own.index] = np.maximum(h[own.index], own.h)
-        altered[own.index] = True
-        fixed = np.flatnonzero(altered)
+        own, own_dq, own_h = ~movable, np.zeros(len(angles)), np.zeros(len(angles))
+        if self.bounds.fix(angles, variation, own, own_dq, own_h, progressive):
+            own &= movable
+            variation[own] = own_dq[own]
+            h[own] = np.maximum(h[own], own_h[own])
+            altered |= own
+        fixed = altered.nonzero()[0]
         if not len(fixed):
             return _nothing()
         return LimitDecision(self.v_index[fixed], variation[fixed], h[fixed])
