@@ -201,3 +201,27 @@ def test_gpm_still_attracts_grouped_joints_to_mid_range(talos, groups):
     grouped = [talos.model.joints[talos.joint_id(joint)].idx_v
                for model in groups for joint in model.dof_names]
     assert set(grouped) <= set(moved) and len(moved) == len(talos.limited_v_index)
+
+
+WARM_UP_CHECK = """
+import stance.swing as swing
+from stance.pik import PIKSolver
+from stance.robot import Robot
+talos = Robot.load("talos")
+solver = PIKSolver(talos, limit_models=swing.load_limit_file("talos", talos))
+solver.warm_up(talos.initial_configuration())
+print(bool(swing._group_angles.signatures))   # the entry point from Python
+"""
+
+
+def test_warm_up_compiles_what_a_group_at_its_limit_needs():
+    """pik_node warms its solver up before its first cycle: the group's compiled Gauss-Newton
+    must be ready then, not compiled (seconds) the first time a group reaches its cone. In a
+    fresh process: this one has run angles_for already."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", WARM_UP_CHECK], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "True"

@@ -218,6 +218,8 @@ class PIKSolver:
             make_task(spec, robot).jacobian_and_error(robot, q)
         self.limits.decide(q, np.zeros(nv), np.ones(nv, dtype=bool), True)
         self.limits.keep_inside(q, q.copy())
+        for model in self.limit_models[1:]:
+            model.warm_up(q)
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""

@@ -326,6 +326,14 @@ class SwingTwistRule:
         fixed_dq, h: nv); True if it fixes any DoF."""
         return apply_decision(self.decide(q, dq, ~fixed, progressive), fixed, fixed_dq, h)
 
+    def warm_up(self, q) -> None:
+        """Compile the kernels a decision near the limits needs (PIKSolver.warm_up): the
+        domain's distance, closest point and normal at the joint's swing at q."""
+        s, _ = swing_twist(self.rotation(q))
+        self.domain.signed_distance(s)
+        self.domain.normal_at(s)
+        self.domain.closest_boundary_point(s)
+
     def may_reach(self, key: bytes, rotation, reach: float, zone: float) -> bool:
         """Whether the joint rotation `rotation` (its configuration bytes: `key`, a cache key
         for the clamping loop's repeated questions), turned by at most `reach` rad, may bring
@@ -636,6 +644,10 @@ class JointGroupLimit(SwingTwistRule):
         bounds = (model.lowerPositionLimit[self.q_index], model.upperPositionLimit[self.q_index])
         local = np.arange(len(ids))
         self.bounds = RevoluteLimits(joints, local, local, *bounds, activation)
+
+    def warm_up(self, q) -> None:
+        super().warm_up(q)
+        self.angles_for(self.rotation(q), q[self.q_index])
 
     def rotation(self, q) -> np.ndarray:
         """Group rotation R at configuration q (nq)."""
