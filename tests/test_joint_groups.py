@@ -15,9 +15,8 @@ from hypothesis import strategies as st
 
 from stance.pik import PIKSolver
 from stance.robot import Robot
-from stance.swing import (JointGroupLimit, LimitFileError, _axes_least_squares,
-                          limit_file_path, load_limit_file, parse_limits, rotation_log,
-                          swing_twist)
+from stance.swing import (JointGroupLimit, LimitFileError, limit_file_path, load_limit_file,
+                          parse_limits, rotation_log, swing_twist)
 
 SWING_TOLERANCE = math.radians(0.5)
 BOUND_TOLERANCE = 1e-9
@@ -119,19 +118,6 @@ def test_compiled_rotation_log_is_pinocchios(axis, angle):
         assert np.linalg.norm(found) == pytest.approx(np.linalg.norm(expected), abs=1e-9)
     else:
         np.testing.assert_allclose(found, expected, atol=1e-9)
-
-
-@pytest.mark.parametrize("axes", [np.eye(3), np.eye(3)[:, :2],
-                                  np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]),
-                                  np.array([[1.0, 1.0], [0.0, 1e-5], [0.0, 0.0]])],
-                         ids=["independent", "two", "dependent", "nearly_dependent"])
-def test_axes_least_squares_is_lapacks_min_norm_solution(axes):
-    """The group solve's small least squares (normal equations, or LAPACK's SVD when the
-    axes are (nearly) dependent) gives numpy's min-norm least-squares solution."""
-    error = np.array([0.3, -0.2, 0.1])
-    expected = np.linalg.lstsq(axes, error, rcond=1e-9)[0]
-    np.testing.assert_allclose(_axes_least_squares(np.ascontiguousarray(axes), error),
-                               expected, atol=1e-9)
 
 
 def group_file(joints, kind="ball", **extra) -> dict:

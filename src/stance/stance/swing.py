@@ -38,6 +38,7 @@ import numpy as np
 import pinocchio as pin
 import yaml
 
+from .hierarchy import _damped_least_squares
 from .limits import (NEGLIGIBLE_VARIATION, LimitDecision, RevoluteLimits, apply_decision,
                      cubic_step)
 
@@ -470,8 +471,8 @@ class SwingLimit(BallLimit):
 REVOLUTE_AXES = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2}
 GROUP_SOLVE_ITERATIONS = 20
 GROUP_STEP_HALVINGS = 30      # a Gauss-Newton step halved at most this often
+GROUP_SOLVE_DAMPING = 1e-6    # lambda of its steps (the hierarchy's DLS): finite when axes align
 GROUP_SOLVE_TOLERANCE = 1e-12  # rad: rotation error, or last step, of the angles found
-AXES_CONDITION = 1e-6         # Cholesky pivot^2 below which the group's axes count as dependent
 KEEP_INSIDE_ROUNDS = 3         # alternate projections onto the cone and the joints' bounds
 
 
@@ -506,7 +507,8 @@ def _product3(a, b):
 @numba.njit(cache=True)
 def _group_angles(placements, axis_index, target, start, movable):
     """JointGroupLimit.angles_for compiled (movable: indices of the joints it may move).
-    A Gauss-Newton step that does not lower the rotation error is halved: with a joint held,
+    Steps are the hierarchy's damped least squares (GROUP_SOLVE_DAMPING), finite where two
+    axes align. A step that does not lower the rotation error is halved: with a joint held,
     the target may be out of reach, where full steps can overshoot (nearly aligned axes,
     like the shoulder's two yaws) and cycle."""
     angles = start.copy()
@@ -516,7 +518,8 @@ def _group_angles(placements, axis_index, target, start, movable):
     for _ in range(GROUP_SOLVE_ITERATIONS):
         if size <= GROUP_SOLVE_TOLERANCE:
             break
-        step = _axes_least_squares(np.ascontiguousarray(axes[:, movable]), error)
+        step = _damped_least_squares(np.ascontiguousarray(axes[:, movable]), error,
+                                     GROUP_SOLVE_DAMPING ** 2)
         lowered = False
         for _ in range(GROUP_STEP_HALVINGS):
             trial = angles.copy()
@@ -534,43 +537,6 @@ def _group_angles(placements, axis_index, target, start, movable):
         if np.sqrt(np.sum(step * step)) <= GROUP_SOLVE_TOLERANCE:
             break
     return start + (np.remainder(angles - start + np.pi, 2.0 * np.pi) - np.pi)
-
-
-@numba.njit(cache=True)
-def _axes_least_squares(axes, error):
-    """Least-squares angles (m) turning about unit `axes` (3 x m, m <= 3) by `error` (3),
-    min-norm when the axes are dependent: the normal equations by Cholesky while they are
-    well conditioned (a LAPACK call costs more than the solve), else LAPACK's SVD."""
-    count = axes.shape[1]
-    gram = np.zeros((count, count))
-    for i in range(count):
-        for j in range(count):
-            gram[i, j] = axes[0, i] * axes[0, j] + axes[1, i] * axes[1, j] + \
-                axes[2, i] * axes[2, j]
-    low = np.zeros((count, count))
-    for i in range(count):
-        for j in range(i + 1):
-            acc = gram[i, j]
-            for k in range(j):
-                acc -= low[i, k] * low[j, k]
-            if i == j:
-                if acc <= AXES_CONDITION:
-                    return np.linalg.lstsq(axes, error, rcond=1e-9)[0]
-                low[i, i] = math.sqrt(acc)
-            else:
-                low[i, j] = acc / low[j, j]
-    solution = np.zeros(count)
-    for i in range(count):
-        solution[i] = axes[0, i] * error[0] + axes[1, i] * error[1] + axes[2, i] * error[2]
-    for i in range(count):
-        for k in range(i):
-            solution[i] -= low[i, k] * solution[k]
-        solution[i] /= low[i, i]
-    for i in range(count - 1, -1, -1):
-        for k in range(i + 1, count):
-            solution[i] -= low[k, i] * solution[k]
-        solution[i] /= low[i, i]
-    return solution
 
 
 @numba.njit(cache=True)
