@@ -89,7 +89,8 @@ class PIKSolver:
         per-DoF bounds on dq.
     limit_models: limit models beyond the robot's 1-DoF joints (e.g. swing joints, joint
         groups, which take their joints from the revolute model); their DoFs must not
-        overlap.
+        overlap. Each has v_index, dof_names, fix(), keep_inside() and warm_up(q), as
+        swing.SwingTwistRule.
     """
 
     def __init__(self, robot, strategy: str = "progressive", damping: float = 1e-3,

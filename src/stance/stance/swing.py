@@ -471,7 +471,7 @@ class SwingLimit(BallLimit):
 REVOLUTE_AXES = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2}
 GROUP_SOLVE_ITERATIONS = 20
 GROUP_STEP_HALVINGS = 30      # a Gauss-Newton step halved at most this often
-GROUP_SOLVE_DAMPING = 1e-6    # lambda of its steps (the hierarchy's DLS): finite when axes align
+GROUP_SOLVE_DAMPING = 1e-6    # lambda of its steps (hierarchy DLS): finite when axes align
 GROUP_SOLVE_TOLERANCE = 1e-12  # rad: rotation error, or last step, of the angles found
 KEEP_INSIDE_ROUNDS = 3         # alternate projections onto the cone and the joints' bounds
 

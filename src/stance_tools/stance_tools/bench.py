@@ -484,6 +484,13 @@ def add_groups_arguments(parser) -> None:
     add_levels_arguments(parser)
 
 
+GROUP_SCENARIOS = {   # hand offsets (m, world): the groups far from their cones; the
+    #                   shoulders in theirs (the arms spread), altered every step
+    "hands forward": {"left_hand": (0.25, 0.2, 0.2), "right_hand": (0.25, -0.2, 0.2)},
+    "arms out": {"left_hand": (0.1, 0.6, 0.3), "right_hand": (0.1, -0.6, 0.3)},
+}
+
+
 def run_groups(args) -> int:
     from threadpoolctl import threadpool_limits
 
@@ -494,32 +501,39 @@ def run_groups(args) -> int:
     talos = Robot.from_example_robot_data("talos")
     start = bench_start(talos)
     specs = parse_stack_yaml(TALOS_LEVEL_STACK)
-    hand_offsets = {"left_hand": (0.25, 0.2, 0.2), "right_hand": (0.25, -0.2, 0.2)}
-    targets = bench_targets(talos, specs, start, hand_offsets)
     groups = load_limit_file("talos", talos)
-    with threadpool_limits(limits=1):
-        contenders = [StanceContender(talos, "progressive", specs, targets, start, args.dt,
-                                      name=name, limit_models=models)
-                      for name, models in (("1-DoF limits", ()), ("joint groups", groups))]
-        race(contenders, talos, start, args.warmup)
-        records = race(contenders, talos, start, args.steps)
-    result = {contender.name: {**timing_us(records[contender.name]),
-                               "mean_clamping_iterations":
-                                   float(np.mean(records[contender.name].iterations))}
-              for contender in contenders}
-    ratio = result["joint groups"]["median_us"] / result["1-DoF limits"]["median_us"]
-    print(f"stance bench groups: Talos, feet > CoM xy > both hands > posture, hands moved "
-          f"{hand_offsets} m, progressive clamping, dt {args.dt} s, {args.steps} timed "
-          f"steps after {args.warmup} warm-up, interleaved, one BLAS thread")
-    print(f"{'limits':<16}{'median us':>10}{'p99 us':>10}{'iters':>7}")
-    for name, entry in result.items():
-        print(f"{name:<16}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
-              f"{entry['mean_clamping_iterations']:>7.2f}")
-    print(f"joint groups / 1-DoF limits, median: {ratio:.2f}x (groups: "
-          f"{', '.join(model.name for model in groups)})")
+    results = {}
+    print(f"stance bench groups: Talos, feet > CoM xy > both hands > posture, progressive "
+          f"clamping, dt {args.dt} s, {args.steps} timed steps after {args.warmup} warm-up, "
+          f"the two limit sets interleaved, one BLAS thread; groups: "
+          f"{', '.join(model.name for model in groups)}")
+    print(f"{'scenario':<15}{'limits':<15}{'median us':>10}{'p99 us':>10}{'iters':>7}"
+          f"{'x 1-DoF':>9}")
+    for scenario, offsets in GROUP_SCENARIOS.items():
+        targets = bench_targets(talos, specs, start, offsets)
+        with threadpool_limits(limits=1):
+            contenders = [StanceContender(talos, "progressive", specs, targets, start,
+                                          args.dt, name=name, limit_models=models)
+                          for name, models in (("1-DoF limits", ()),
+                                               ("joint groups", groups))]
+            race(contenders, talos, start, args.warmup)
+            records = race(contenders, talos, start, args.steps)
+        result = {contender.name: {**timing_us(records[contender.name]),
+                                   "mean_clamping_iterations":
+                                       float(np.mean(records[contender.name].iterations))}
+                  for contender in contenders}
+        result["ratio"] = (result["joint groups"]["median_us"]
+                           / result["1-DoF limits"]["median_us"])
+        results[scenario] = {"hand_offsets": offsets, **result}
+        for name in ("1-DoF limits", "joint groups"):
+            entry = result[name]
+            ratio = f"{result['ratio']:.2f}" if name == "joint groups" else "-"
+            print(f"{scenario:<15}{name:<15}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
+                  f"{entry['mean_clamping_iterations']:>7.2f}{ratio:>9}")
+    print("hand offsets (m, world): " + "; ".join(
+        f"{scenario} {offsets}" for scenario, offsets in GROUP_SCENARIOS.items()))
     if args.json:
         with open(args.json, "w") as output:
-            json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt,
-                       "hand_offsets": hand_offsets, "ratio": ratio, **result}, output,
-                      indent=2)
+            json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt, **results},
+                      output, indent=2)
     return 0
