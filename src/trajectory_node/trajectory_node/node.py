@@ -106,6 +106,7 @@ STATUS_HISTORY = 20
 STATUS_QOS = QoSProfile(depth=STATUS_HISTORY, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RESEND_PERIOD = 1.0  # s without an answer before a service request is sent again
+SLOW_CALL = 0.1      # s: a pik_node call answered later than this is logged (the stream waited)
 TIMINGS = ("sinusoidal", "time_optimal")
 
 
@@ -494,8 +495,9 @@ class TrajectoryNode(Node):
         watch loses pik_node. Unanswered, the request is sent again every RESEND_PERIOD s:
         after a restart the dead server still counts as available until its lease
         expires, and a request sent before the new server matched is lost (both services
-        are idempotent)."""
-        deadline, future, sent = time.monotonic() + self.service_timeout, None, 0.0
+        are idempotent). An answer later than SLOW_CALL s is logged: the stream waited."""
+        called = time.monotonic()
+        deadline, future, sent = called + self.service_timeout, None, 0.0
         while future is None or not future.done():
             lost = self._pik.lost()
             if lost or time.monotonic() > deadline or self._stop.is_set():
@@ -513,6 +515,10 @@ class TrajectoryNode(Node):
                 future, sent = client.call_async(request), time.monotonic()
             time.sleep(0.002)
         response = future.result()
+        waited = time.monotonic() - called
+        if waited > SLOW_CALL:
+            self.get_logger().warning(f"{client.srv_name} answered after {waited:.2f} s "
+                                      "(streaming waited)")
         if not response.success:
             raise ExecutionError(f"{client.srv_name}: {response.message}")
         return response
