@@ -649,7 +649,8 @@ class JointGroupLimit(SwingTwistRule):
         if self.may_reach(angles.tobytes(), rotation, float(np.abs(variation).sum()),
                           self.thickness):
             target, swing_h, twist_h = self.altered(
-                rotation, self.rotation_and_axes(angles + variation)[0], progressive)
+                rotation, _group_rotation(self.placements, self.axis_index,
+                                          angles + variation)[0], progressive)
         if target is not None:
             reached = self.angles_for(target, angles, movable)
             variation[movable] = reached[movable] - angles[movable]
