@@ -187,6 +187,33 @@ def test_near_pairs_match_a_brute_force_pass(robot, scene, margin):
                            atol=1e-6)
 
 
+def test_forget_makes_the_rows_independent_of_earlier_calls(robot, scene):
+    """After forget(), constraint rows at q are bitwise those of a fresh model at q,
+    whatever the model computed before; without it, the GJK warm starts and bounds left by
+    the walk change them to rounding (so a posture would depend on its generator's
+    history)."""
+    model, near = robot.model, 0.08
+    rng = np.random.default_rng(5)
+    walk = [lowered(robot, 0.02)]
+    for _ in range(20):
+        walk.append(pin.integrate(model, walk[-1], rng.normal(scale=0.02, size=model.nv)))
+    fresh = CollisionModel(robot, scene).constraint_rows(walk[-1], near=near)
+    walked = CollisionModel(robot, scene)
+    for q in walk[:-1]:
+        walked.constraint_rows(q, near=near)
+    remembered = walked.constraint_rows(walk[-1], near=near)
+    assert remembered[2] == fresh[2]
+    assert not (np.array_equal(remembered[0], fresh[0])
+                and np.array_equal(remembered[1], fresh[1]))
+    for q in walk[:-1]:
+        walked.constraint_rows(q, near=near)
+    walked.forget()
+    forgotten = walked.constraint_rows(walk[-1], near=near)
+    assert forgotten[2] == fresh[2]
+    np.testing.assert_array_equal(forgotten[0], fresh[0])
+    np.testing.assert_array_equal(forgotten[1], fresh[1])
+
+
 def test_mesh_obstacle_is_a_convex_hull(robot, scene):
     packages, _ = example_robot_data_files("talos")
     meshes = sorted(glob.glob(os.path.join(packages[0], "**", "*.STL"), recursive=True))

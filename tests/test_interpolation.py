@@ -228,11 +228,43 @@ def chair_transitions(chair):
 def test_every_transition_of_the_chair_plan_interpolates_some_off_the_exact_path(
         chair_transitions):
     """The planner never re-places a sole under a held thigh, paths rise over surface
-    edges, and a failing sample is approached through halved steps: every transition
-    interpolates (no InterpolationError), some by a detour, some through halved steps."""
+    edges: every transition interpolates (no InterpolationError), some by a detour."""
     statistics = [entry for _, entry in chair_transitions]
     assert any(entry["detour_from"] is not None for entry in statistics)
-    assert any(entry["subdivided"] for entry in statistics)
+
+
+def test_a_failing_sample_is_reached_through_halved_steps():
+    """_Sampler.reach on a stand-in generator that succeeds only from a guess within 0.3
+    of the sample's s (s coded on one joint): the jump 0 -> 1 fails, halving twice reaches
+    0.25, then 0.5 from the extrapolated guess, then 1; without depth it fails."""
+    from types import SimpleNamespace
+
+    from stance.execution import interpolation
+
+    model = pin.buildSampleModelManipulator()
+    q0 = pin.neutral(model)
+
+    def at(s):
+        q = q0.copy()
+        q[0] = s
+        return q
+
+    class Sampler(interpolation._Sampler):
+        def sample(self, s, guess):
+            self.asked.append(s)
+            return SimpleNamespace(success=abs(guess[0] - s) <= 0.3 + 1e-12, q=at(s))
+
+    def reach(depth):
+        sampler = Sampler(SimpleNamespace(generator=SimpleNamespace(model=model)),
+                          None, None, (), {}, set())
+        sampler.asked = []
+        return sampler, sampler.reach(0.0, at(0.0), 1.0, at(0.0), depth)
+
+    sampler, result = reach(3)
+    assert result.success and result.q[0] == 1.0
+    assert sampler.asked == [1.0, 0.5, 0.25, 0.5, 1.0] and sampler.subdivided == 2
+    sampler, result = reach(0)
+    assert not result.success and sampler.asked == [1.0] and sampler.subdivided == 0
 
 
 def test_samples_off_the_exact_path_keep_contacts_limits_and_clearance(chair,

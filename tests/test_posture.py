@@ -170,6 +170,32 @@ def test_locked_joints_never_move(robot, scene):
     assert abs(free.q[moved] - q0[moved]) > 1e-3   # the lock is what keeps it
 
 
+def test_a_posture_does_not_depend_on_the_generations_before_it(robot, scene):
+    """With collision rows: the same call gives the bitwise same posture from a fresh
+    generator and from one that generated other postures first (a planner's worker
+    processes each see a different share of the calls). A budget of 30 s keeps the
+    deadline (a first call may compile kernels) out of it."""
+    from stance.planning.collision import CollisionModel
+
+    def fresh():
+        return PostureGenerator(robot, scene, CollisionModel(robot, scene))
+
+    q0 = robot.initial_configuration()
+    call = ((sole_contact(robot, scene, "left_sole"),
+             sole_contact(robot, scene, "right_sole").with_stability(False),
+             Contact("right_hand", "table", 0.05, 0.0, 0.0)), q0,
+            ReferencePosture(robot.model, q0))
+    expected = fresh().generate(*call, time_budget=30.0)
+    used = fresh()
+    for dx in (0.1, 0.2):
+        used.generate((sole_contact(robot, scene, "left_sole"),
+                       sole_contact(robot, scene, "right_sole", dx=dx)), q0,
+                      ReferencePosture(robot.model, q0), time_budget=30.0)
+    again = used.generate(*call, time_budget=30.0)
+    assert expected.success and again.iterations == expected.iterations
+    np.testing.assert_array_equal(again.q, expected.q)
+
+
 def test_a_guide_target_yields_to_the_contacts_within_its_tolerance(robot, scene):
     """A hand target out of reach: as a contact it fails; as a guide of weight 1e-2 and a
     tolerance larger than its distance it is accepted where the arm stops, with the feet

@@ -51,6 +51,10 @@ _HULLS: dict = {}
 # deep penetration (EPA at 1e-9 left 2e-4); no measurable cost on hulls.
 _GJK_TOLERANCE = 1e-9
 _EPA_TOLERANCE = 1e-12
+# A fresh request's GJK warm start (search direction, support vertex indices): what
+# CollisionModel.forget puts back.
+_COLD_GUESS = np.array([1.0, 0.0, 0.0])
+_COLD_SUPPORT = np.zeros(2, dtype=np.int32)
 
 
 def example_robot_data_files(spec: str) -> tuple[list, str | None]:
@@ -160,6 +164,7 @@ class CollisionModel:
         self._reference = None      # relative placements of the joint pairs at the last call
         self._lower = None          # certified distance lower bounds (pairs,) at that call
         self._ignored_key, self._ignored_mask = None, np.zeros(len(self.pairs), dtype=bool)
+        self._warm = np.zeros(len(self.pairs), dtype=bool)  # pairs with a GJK warm start
 
     def _bounds_setup(self, objects, robot_geometries):
         """Bounding volumes for cheap distance lower bounds: a sphere about each robot
@@ -254,6 +259,21 @@ class CollisionModel:
         return [(self.labels[candidates[k]], float(distances[k]))
                 for k in order if distances[k] < -tolerance]
 
+    def forget(self) -> None:
+        """Drop what earlier calls left behind: the distance bounds and every pair's GJK
+        warm start (Pinocchio's requests keep the last call's guesses, so a distance
+        depends on the pair's history to rounding). The calls that follow then depend only
+        on their own inputs: a posture search that starts with forget() gives the same
+        posture whatever this model computed before, hence a plan that does not depend on
+        which worker process generated which posture."""
+        self._reference = self._lower = None
+        requests = self.geometry_data.distanceRequests
+        for pair in np.flatnonzero(self._warm):
+            request = requests[int(pair)]
+            request.cached_gjk_guess = _COLD_GUESS
+            request.cached_support_func_guess = _COLD_SUPPORT
+        self._warm[:] = False
+
     def _lower_bounds(self):
         """Distance lower bounds (pairs,) in m at the joint placements of self.data: the
         bounding volumes' distances, or the last call's bounds minus the pairs' relative
@@ -276,6 +296,7 @@ class CollisionModel:
     def _distances(self, pairs):
         """Hull distance results and distances (k,) in m of pair indices `pairs` (geometry
         placements already updated)."""
+        self._warm[pairs] = True
         results = [pin.computeDistance(self.geometry_model, self.geometry_data, int(k))
                    for k in pairs]
         return results, np.array([r.min_distance for r in results], dtype=float)

@@ -195,6 +195,8 @@ class PostureGenerator:
         start, cpu_start = time.perf_counter(), time.thread_time()
         budget = self.settings.time_budget if time_budget is None else time_budget
         self.calls += 1
+        if self.collision is not None:
+            self.collision.forget()   # a posture that depends on its inputs only
         contacts = tuple(contacts)
         support = [c for c in contacts if c.in_stability]
         if not support:
