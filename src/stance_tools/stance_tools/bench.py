@@ -51,7 +51,7 @@ BENCHMARKS = {
              "contact planner on the chair scene: nodes, posture generations, time; "
              "ordered sons on vs off"),
     "graph": ("stance_tools.bench_graph", "add_graph_arguments", "run_graph",
-              "CPU per node of the whole graph (% of one core), idle and executing a plan"),
+              "CPU per node of the whole graph (%% of one core), idle and executing a plan"),
 }
 
 
