@@ -262,10 +262,9 @@ class CollisionModel:
     def forget(self) -> None:
         """Drop what earlier calls left behind: the distance bounds and every pair's GJK
         warm start (Pinocchio's requests keep the last call's guesses, so a distance
-        depends on the pair's history to rounding). The calls that follow then depend only
-        on their own inputs: a posture search that starts with forget() gives the same
-        posture whatever this model computed before, hence a plan that does not depend on
-        which worker process generated which posture."""
+        depends on the pair's history to rounding). The calls that follow then give what a
+        fresh model would: a posture search that starts with forget() does not depend on
+        what this model computed before."""
         self._reference = self._lower = None
         requests = self.geometry_data.distanceRequests
         for pair in np.flatnonzero(self._warm):

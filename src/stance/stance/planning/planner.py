@@ -237,9 +237,10 @@ class _Search:
     def prefetch(self, node, removals, frees):
         """With worker processes: generate the node's removal sons and each pair's first son
         at once, in parallel; `generate` then takes these results in its usual order.
-        A posture depends on its call only (the generator forgets its collision model's
-        state at each call), so the plan is the same with any number of workers; call i
-        goes to worker i mod workers."""
+        Call i goes to worker i mod workers, so every worker sees the same calls in every
+        run: the search amplifies rounding, and a posture still depends to rounding on
+        what its process computed before (README), so a schedule that depended on timing
+        would not give the same plan twice."""
         if not self.pool or self._must_stop():
             return
         calls = [(None, removed) for removed in removals] + [(free, None) for free in frees]
@@ -376,7 +377,7 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
     robot: stance.robot.Robot of the scene; progress(PlanProgress) is called after each
     expansion; should_stop() is polled between posture generations (cancel). collision:
     a CollisionModel to reuse (built from the scene otherwise; the generator forgets its
-    state at each call, so a reused one gives the plan a fresh one would); settings:
+    state at each call); settings:
     PostureSettings.
     """
     from .collision import CollisionModel
