@@ -1,8 +1,9 @@
-"""`stance bench levels` and `stance bench groups` run a few steps and report what they
-promise: every contender's median and p99, and the ratios they exist for."""
+"""`stance bench pik`, `levels` and `groups` run a few steps and report what they promise:
+every contender's median and p99, and the ratios they exist for."""
 
 import json
 
+import pytest
 from stance_tools.cli import main as stance
 
 
@@ -33,3 +34,33 @@ def test_bench_levels_compares_each_level_count_with_one_less(tmp_path):
         previous = talos.get(f"{label} {int(count) - 1} levels")
         assert entry["over_one_level_less"] == (
             None if previous is None else entry["median_us"] / previous["median_us"])
+
+
+def test_bench_pik_runs_the_issue_stack_against_pink(tmp_path):
+    """By default the stack is feet > CoM > both hands > posture, both hands moved (the
+    left one mirrored), and every Pink contender solves the same problem."""
+    output = tmp_path / "pik.json"
+    assert stance(["bench", "pik", "--steps", "20", "--warmup", "5", "--backends", "daqp",
+                   "--json", str(output)]) == 0
+    result = json.loads(output.read_text())
+    assert result["stack"] == "hands"
+    right = result["hand_offsets"]["right_hand"]
+    assert result["hand_offsets"]["left_hand"] == [right[0], -right[1], right[2]]
+    contenders = result["contenders"]
+    assert {"stance progressive", "stance progressive qp", "pink daqp"} <= set(contenders)
+    pink = contenders["pink daqp"]
+    assert pink["failed_at_step"] is None and 0 < pink["median_us"] <= pink["p99_us"]
+    progressive = contenders["stance progressive"]
+    assert pink["stance_over_pink_median"] == pytest.approx(
+        progressive["median_us"] / pink["median_us"])
+    assert set(progressive["final_task_errors"]) == {
+        "left_foot", "right_foot", "com", "left_hand", "right_hand", "posture"}
+
+
+def test_bench_pik_demo_stack_moves_the_right_hand_only(tmp_path):
+    output = tmp_path / "pik.json"
+    assert stance(["bench", "pik", "--stack", "demo", "--steps", "5", "--warmup", "2",
+                   "--backends", "daqp", "--json", str(output)]) == 0
+    result = json.loads(output.read_text())
+    assert set(result["hand_offsets"]) == {"right_hand"}
+    assert "left_hand" not in result["contenders"]["stance progressive"]["final_task_errors"]

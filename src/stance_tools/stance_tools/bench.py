@@ -2,7 +2,8 @@
 
 - pik: one library IK step on Talos, PIKSolver (strategies none / clamping / progressive,
   and progressive on the QP hierarchy) against Pink's solve_ik on every available QP
-  backend, same robot, stack and targets.
+  backend, same robot, stack and targets: feet > CoM > both hands > posture (`--stack
+  hands`, the default), or pik_node's demo stack with the right hand only (`--stack demo`).
 - levels: cost of a step as priority levels are added, SVD and QP hierarchies side by side
   (Talos, 1 to 4 levels; Panda arm, 2 levels).
 - groups: cost of a step with Talos' hips and shoulders limited as ball / swing joints
@@ -82,6 +83,26 @@ def run(args) -> int:
 # pik: PIKSolver.step vs Pink solve_ik + integrate + configuration update
 # ---------------------------------------------------------------------------------------
 
+def mirrored_hands(right_offset) -> dict:
+    """Hand target offsets (m, world): the right hand's, and the left hand's mirror image
+    in the sagittal plane (y negated)."""
+    x, y, z = right_offset
+    return {"left_hand": (x, -y, z), "right_hand": (x, y, z)}
+
+
+# The issue's stack: feet (12) > CoM xy (2) > both hands (12) > posture.
+TALOS_LEVEL_STACK = """
+- {name: left_foot, kind: pose, frame: left_sole_link, priority: 0, gain: 0.5}
+- {name: right_foot, kind: pose, frame: right_sole_link, priority: 0, gain: 0.5}
+- {name: com, kind: com, priority: 1, axes: [x, y], gain: 0.2}
+- {name: left_hand, kind: pose, frame: gripper_left_base_link, priority: 2, gain: 0.1}
+- {name: right_hand, kind: pose, frame: gripper_right_base_link, priority: 2, gain: 0.1}
+- {name: posture, kind: posture, priority: 3, gain: 0.02}
+"""
+# Both hands 0.25 m forward, 0.2 m out and 0.2 m up from the start: reached, with the
+# torso's pitch on its limit (the CoM level leans it back) and both wrists damped.
+HANDS_FORWARD = mirrored_hands((0.25, -0.2, 0.2))
+PIK_STACKS = ("hands", "demo")
 STRATEGIES = ("progressive", "clamping", "none")
 PINK_BACKENDS = ("quadprog", "daqp", "proxqp")
 GRIPPER_JOINTS = ("gripper_left_joint", "gripper_right_joint")
@@ -93,8 +114,13 @@ def add_pik_arguments(parser) -> None:
     parser.add_argument("--steps", type=int, default=2000, help="timed steps per contender")
     parser.add_argument("--warmup", type=int, default=200,
                         help="untimed steps first (numba and QP set-up excluded)")
-    parser.add_argument("--offset", type=float, nargs=3, default=(0.25, -0.2, 0.2),
-                        metavar=("X", "Y", "Z"), help="right-hand target offset (m, world)")
+    parser.add_argument("--stack", choices=PIK_STACKS, default="hands",
+                        help="hands: feet > CoM xy > both hands > posture; demo: pik_node's "
+                             "demo stack (right hand only)")
+    parser.add_argument("--offset", type=float, nargs=3, default=HANDS_FORWARD["right_hand"],
+                        metavar=("X", "Y", "Z"),
+                        help="right-hand target offset (m, world); the left hand's is its "
+                             "mirror image (y negated)")
     parser.add_argument("--dt", type=float, default=0.002,
                         help="step period (s): velocity limits for both solvers")
     parser.add_argument("--backends", nargs="+", default=PINK_BACKENDS,
@@ -316,11 +342,16 @@ def run_pik(args) -> int:
 
     from stance.pik import PIKSolver, default_stack_specs
     from stance.robot import Robot
+    from stance.stack import parse_stack_yaml
 
     robot = Robot.from_example_robot_data("talos")
-    specs = default_stack_specs()
+    specs = parse_stack_yaml(TALOS_LEVEL_STACK) if args.stack == "hands" else \
+        default_stack_specs()
     start = bench_start(robot)
-    targets = bench_targets(robot, specs, start, {"right_hand": args.offset})
+    right = tuple(float(value) for value in args.offset)
+    offsets = {name: offset for name, offset in mirrored_hands(right).items()
+               if any(spec.name == name for spec in specs)}
+    targets = bench_targets(robot, specs, start, offsets)
     backends = [name for name in args.backends if name in qpsolvers.available_solvers]
     skipped = sorted(set(args.backends) - set(backends))
     evaluator = PIKSolver(robot)
@@ -340,9 +371,9 @@ def run_pik(args) -> int:
         records = race(contenders, robot, start, args.steps)  # same trajectory from start
     result = figures(records, evaluator)
 
-    print(f"stance bench pik: Talos (nv {robot.model.nv}), demo stack "
-          f"({', '.join(spec.name for spec in specs)}), right-hand target "
-          f"{np.round(args.offset, 3).tolist()} m from its start, dt {args.dt} s, "
+    print(f"stance bench pik: Talos (nv {robot.model.nv}), {args.stack} stack "
+          f"({', '.join(f'{spec.name} {spec.priority}' for spec in specs)}), targets moved "
+          f"from the start by {offsets} m, dt {args.dt} s, "
           f"{args.steps} timed steps after {args.warmup} warm-up, one BLAS thread, "
           f"round-robin order")
     print("Pink costs 10^-priority per task, gains as in the stack, default limits"
@@ -354,7 +385,7 @@ def run_pik(args) -> int:
     if args.json:
         with open(args.json, "w") as output:
             json.dump({"robot": "talos", "steps": args.steps, "warmup": args.warmup,
-                       "dt": args.dt, "right_hand_offset": list(args.offset),
+                       "dt": args.dt, "stack": args.stack, "hand_offsets": offsets,
                        "note": note, "contenders": result}, output, indent=2)
     return 0
 
@@ -363,14 +394,6 @@ def run_pik(args) -> int:
 # levels: step cost as priority levels are added, SVD vs QP hierarchy
 # ---------------------------------------------------------------------------------------
 
-TALOS_LEVEL_STACK = """
-- {name: left_foot, kind: pose, frame: left_sole_link, priority: 0, gain: 0.5}
-- {name: right_foot, kind: pose, frame: right_sole_link, priority: 0, gain: 0.5}
-- {name: com, kind: com, priority: 1, axes: [x, y], gain: 0.2}
-- {name: left_hand, kind: pose, frame: gripper_left_base_link, priority: 2, gain: 0.1}
-- {name: right_hand, kind: pose, frame: gripper_right_base_link, priority: 2, gain: 0.1}
-- {name: posture, kind: posture, priority: 3, gain: 0.02}
-"""
 PANDA_STACK = """
 - {name: hand, kind: pose, frame: panda_hand, priority: 0, gain: 0.1}
 - {name: posture, kind: posture, priority: 1, gain: 0.02}
@@ -444,7 +467,7 @@ def run_levels(args) -> int:
     talos = Robot.from_example_robot_data("talos")
     panda = Robot.from_example_robot_data("panda")
     talos_start, panda_start = bench_start(talos), panda.initial_configuration("default")
-    hand_offsets = {"left_hand": (0.25, 0.2, 0.2), "right_hand": (0.25, -0.2, 0.2)}
+    hand_offsets = HANDS_FORWARD
     with threadpool_limits(limits=1):
         talos_contenders = level_contenders(talos, TALOS_LEVEL_STACK, talos_start,
                                             hand_offsets, args.dt, (1, 2, 3, 4))
@@ -486,8 +509,8 @@ def add_groups_arguments(parser) -> None:
 
 GROUP_SCENARIOS = {   # hand offsets (m, world): the groups far from their cones; the
     #                   shoulders in theirs (the arms spread), altered every step
-    "hands forward": {"left_hand": (0.25, 0.2, 0.2), "right_hand": (0.25, -0.2, 0.2)},
-    "arms out": {"left_hand": (0.1, 0.6, 0.3), "right_hand": (0.1, -0.6, 0.3)},
+    "hands forward": HANDS_FORWARD,
+    "arms out": mirrored_hands((0.1, -0.6, 0.3)),
 }
 
 
