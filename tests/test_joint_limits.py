@@ -192,3 +192,31 @@ def test_strategy_none_can_violate_limits(talos):
 def test_same_input_gives_bitwise_identical_output(talos):
     first, second = (np.array(unreachable_reach(talos, "progressive")) for _ in range(2))
     assert first.tobytes() == second.tobytes()
+
+
+@pytest.mark.parametrize("strategy", LIMITING_STRATEGIES)
+@PROPERTY
+@given(seed=SEEDS, reachable=st.booleans(), dt=st.sampled_from([None, 0.002]))
+def test_the_compiled_clamping_loop_gives_the_python_loops_bits(talos, strategy, seed,
+                                                                reachable, dt):
+    """PIKSolver runs the clamping loop in one compiled call when it can (damped least
+    squares, 1-DoF limits only): every step gives the same bits as the general loop."""
+    start = random_start(talos, np.random.default_rng(seed))
+    solvers = []
+    for one_call in (True, False):
+        solver = PIKSolver(talos, strategy=strategy, dt=dt)
+        assert solver._one_call_loop
+        solver._one_call_loop = one_call
+        solver.set_stack(hands_stack(), start)
+        set_hand_targets(solver, np.random.default_rng(seed), reachable)
+        solvers.append(solver)
+    q = start
+    for _ in range(STEPS):
+        compiled, general = (solver.step(q) for solver in solvers)
+        for field in ("q", "dq", "damping", "clamped"):
+            assert getattr(compiled, field).tobytes() == getattr(general, field).tobytes()
+        assert compiled.clamping_iterations == general.clamping_iterations
+        assert compiled.velocity_scale == general.velocity_scale
+        assert [level.step_residual_norm for level in compiled.levels] == \
+            [level.step_residual_norm for level in general.levels]
+        q = compiled.q

@@ -116,12 +116,12 @@ class DampedHierarchy:
                                   np.empty((level_count + 1, nv)))
             level_steps = np.zeros((level_count, nv))
             residuals = np.zeros(level_count)
-            # empty: a fresh solve (arrays rather than None keep _solve to one compiled
-            # signature, so its first call compiles the restart path too)
+            # empty: a fresh solve (arrays rather than None keep solve_compiled to one
+            # compiled signature, so its first call compiles the restart path too)
             old_fixed, old_values = np.zeros(0, dtype=np.bool_), np.zeros(0)
-        dq = _solve(jacobian, target, offsets, fixed, values, old_fixed, old_values,
-                    state.level_bases, state.level_ranks, state.level_starts, level_steps,
-                    residuals, self.damping, self.rank_tolerance)
+        dq = solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_values,
+                            state.level_bases, state.level_ranks, state.level_starts,
+                            level_steps, residuals, self.damping, self.rank_tolerance)
         return HierarchySolution(dq=dq, step_residuals=residuals, level_steps=level_steps,
                                  restart=state)
 
@@ -139,8 +139,9 @@ def stack_levels(levels, nv: int):
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _solve(jacobian, target, offsets, fixed, values, old_fixed, old_values, level_bases,
-           level_ranks, level_starts, level_steps, residuals, damping, rank_tolerance):
+def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_values,
+                   level_bases, level_ranks, level_starts, level_steps, residuals, damping,
+                   rank_tolerance):
     """DampedHierarchy.solve_stacked in one compiled call (one dispatch instead of several):
     restart from the state of a solution with old_fixed / old_values when they are given
     (non-empty) and allow it (level_steps and residuals are then that solution's copies),

@@ -50,7 +50,7 @@ NEGLIGIBLE_VARIATION = 1e-12  # rad: below this a joint variation is not worth a
 
 
 @numba.njit(cache=True)
-def _fix_joints(configuration, variation, indices, table, progressive, fixed, fixed_dq, h):
+def fix_joints(configuration, variation, indices, table, progressive, fixed, fixed_dq, h):
     """Equations 2-5, then the clamping check (with progressive False only the check, h in
     {0, 1}), for the joints at indices = [q indices; v indices] of the configuration (nq)
     and variation (nv) not fixed yet; table = [lower; upper; lower_threshold;
@@ -113,14 +113,14 @@ class RevoluteLimits:
     def __init__(self, names, q_index, v_index, lower, upper, activation: float = 0.2,
                  max_activation_fraction: float = 0.4):
         self.dof_names = list(names)
-        self._indices = np.array([q_index, v_index], dtype=np.int64).reshape(2, -1)
-        self.q_index, self.v_index = self._indices  # views
+        self.indices = np.array([q_index, v_index], dtype=np.int64).reshape(2, -1)
+        self.q_index, self.v_index = self.indices  # views
         lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
         thickness = np.minimum(activation, max_activation_fraction * (upper - lower))
-        self._table = np.array([lower, upper, lower + thickness, upper - thickness,
+        self.table = np.array([lower, upper, lower + thickness, upper - thickness,
                                 thickness]).reshape(5, -1)
         (self.lower, self.upper, self.lower_threshold, self.upper_threshold,
-         self.thickness) = self._table  # views
+         self.thickness) = self.table  # views
 
     @classmethod
     def from_robot(cls, robot, activation: float = 0.2, owned_v=()) -> RevoluteLimits:
@@ -139,7 +139,7 @@ class RevoluteLimits:
     def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
         """Fix in place (fixed, fixed_dq, h: nv) the DoFs not fixed yet that dq must not
         move freely; True if any. q: configuration (nq), dq: candidate variation (nv)."""
-        return _fix_joints(q, dq, self._indices, self._table, progressive, fixed, fixed_dq,
+        return fix_joints(q, dq, self.indices, self.table, progressive, fixed, fixed_dq,
                            h) > 0
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:

@@ -27,8 +27,8 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from .hierarchy import DampedHierarchy
-from .limits import RevoluteLimits, make_strategy
+from .hierarchy import DampedHierarchy, HierarchySolution, solve_compiled
+from .limits import RevoluteLimits, fix_joints, make_strategy
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
 from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
                     step_cap_groups)
@@ -114,6 +114,9 @@ class PIKSolver:
         self.tasks = {}
         self._needs_com = False
         self._layout = self._make_layout()
+        # the clamping loop in one compiled call: damped least squares, 1-DoF limits only
+        self._one_call_loop = (isinstance(self.hierarchy, DampedHierarchy)
+                               and self.limit_models == [self.limits])
 
     @property
     def strategy_name(self) -> str:
@@ -177,20 +180,12 @@ class PIKSolver:
         fixed = np.zeros(nv, dtype=bool)
         fixed_dq = np.zeros(nv)
         h = np.zeros(nv)
-        iterations = 0
-        solution = None
-        while True:
-            index = fixed.nonzero()[0]
-            restart = {} if getattr(solution, "restart", None) is None else \
-                {"previous": solution}  # re-solve only the levels the new fixes touch
-            solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
-                                                    fixed_dq[index], bounds=bounds, **restart)
-            iterations += 1
-            changed = False
-            for model in self.limit_models:
-                changed |= self.strategy.fix(model, q, solution.dq, fixed, fixed_dq, h)
-            if not changed:
-                break
+        if self._one_call_loop and self.strategy.enforces_limits:
+            solution, iterations = self._compiled_clamping(q, jacobian, target, offsets,
+                                                           fixed, fixed_dq, h)
+        else:
+            solution, iterations = self._clamping(q, jacobian, target, offsets, bounds,
+                                                  fixed, fixed_dq, h)
 
         dq, scale = self._within_velocity_limits(solution, fixed_dq)
         step_residuals = solution.step_residuals if scale == 1.0 else \
@@ -206,6 +201,36 @@ class PIKSolver:
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
                           binding_constraints=solution.binding)
 
+    def _clamping(self, q, jacobian, target, offsets, bounds, fixed, fixed_dq, h):
+        """Step 3 (module docstring) for any hierarchy, limit models and strategy: the
+        final HierarchySolution and how many solutions it took; fixed, fixed_dq and h (nv
+        each) filled in place."""
+        iterations, solution = 0, None
+        while True:
+            index = fixed.nonzero()[0]
+            restart = {} if getattr(solution, "restart", None) is None else \
+                {"previous": solution}  # re-solve only the levels the new fixes touch
+            solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
+                                                    fixed_dq[index], bounds=bounds, **restart)
+            iterations += 1
+            changed = False
+            for model in self.limit_models:
+                changed |= self.strategy.fix(model, q, solution.dq, fixed, fixed_dq, h)
+            if not changed:
+                return solution, iterations
+
+    def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h):
+        """_clamping in one compiled call, when the hierarchy is DampedHierarchy and the
+        1-DoF joints are the only limit models: the same kernels in the same order, so the
+        same bits, without the Python around each solution and limit pass."""
+        hierarchy, limits = self.hierarchy, self.limits
+        dq, level_steps, residuals, iterations = _clamping_loop(
+            jacobian, target, offsets, q, limits.indices, limits.table,
+            self.strategy.progressive, fixed, fixed_dq, h, hierarchy.damping,
+            hierarchy.rank_tolerance)
+        return HierarchySolution(dq=dq, step_residuals=residuals,
+                                 level_steps=level_steps), iterations
+
     def warm_up(self, q: np.ndarray) -> None:
         """Compile (or load from numba's disk cache) the step's kernels, including the
         velocity-saturation path, by one discarded step from q: the first compilation takes
@@ -219,6 +244,9 @@ class PIKSolver:
             make_task(spec, robot).jacobian_and_error(robot, q)
         self.limits.decide(q, np.zeros(nv), np.ones(nv, dtype=bool), True)
         self.limits.keep_inside(q, q.copy())
+        if self._one_call_loop:   # the strategy can change at run time
+            self._compiled_clamping(q, self._jacobian, self._target, self._layout.offsets,
+                                    np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv))
         for model in self.limit_models[1:]:
             model.warm_up(q)
 
@@ -320,6 +348,32 @@ class PIKSolver:
         return _velocity_saturation(
             solution.dq, fixed_dq, self._no_level_steps if level_steps is None else level_steps,
             level_steps is not None, self._speed_index, self._inverse_speed_step)
+
+
+@numba.njit(cache=True)
+def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, progressive,
+                   fixed, fixed_dq, h, damping, rank_tolerance):
+    """PIKSolver._clamping for DampedHierarchy and RevoluteLimits (the indices and table
+    of limits.fix_joints) in one call: each solution restarts from the previous one's
+    levels (hierarchy.solve_compiled); fixed, fixed_dq and h (nv) are filled in place.
+    Returns (dq, level_steps, residuals, solutions)."""
+    nv, levels = jacobian.shape[1], len(offsets) - 1
+    level_bases = np.empty((levels, nv, nv))
+    level_ranks = np.zeros(levels, dtype=np.int64)
+    level_starts = np.empty((levels + 1, nv))
+    level_steps, residuals = np.zeros((levels, nv)), np.zeros(levels)
+    solved_fixed, solved_values = np.zeros(0, dtype=np.bool_), np.zeros(0)  # none yet
+    solutions = 0
+    while True:
+        now_fixed, values = fixed.copy(), fixed_dq.copy()   # fixed_dq is 0 where free
+        dq = solve_compiled(jacobian, target, offsets, now_fixed, values, solved_fixed,
+                    solved_values, level_bases, level_ranks, level_starts, level_steps,
+                    residuals, damping, rank_tolerance)
+        solutions += 1
+        if fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
+                       h) == 0:
+            return dq, level_steps, residuals, solutions
+        solved_fixed, solved_values = now_fixed, values
 
 
 @numba.njit(cache=True)
