@@ -220,3 +220,27 @@ def test_the_compiled_clamping_loop_gives_the_python_loops_bits(talos, strategy,
         assert [level.step_residual_norm for level in compiled.levels] == \
             [level.step_residual_norm for level in general.levels]
         q = compiled.q
+
+
+WARM_UP_CHECK = """
+from stance import pik
+from stance.robot import Robot
+talos = Robot.load("talos")
+solver = pik.PIKSolver(talos, strategy="none")
+solver.set_stack(pik.default_stack_specs(), talos.initial_configuration())
+solver.warm_up(talos.initial_configuration())
+print(bool(pik._clamping_loop.signatures))
+"""
+
+
+def test_warm_up_compiles_the_clamping_loop_whatever_the_strategy():
+    """pik_node warms its solver up before its first cycle with its start-up strategy; the
+    strategy can become `progressive` later, and the compiled loop must not be compiled
+    (seconds) then, in the middle of the control loop. In a fresh process."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", WARM_UP_CHECK], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "True"
