@@ -26,14 +26,20 @@ def test_bench_levels_compares_each_level_count_with_one_less(tmp_path):
     output = tmp_path / "levels.json"
     assert stance(["bench", "levels", "--steps", "20", "--warmup", "5",
                    "--json", str(output)]) == 0
-    talos = json.loads(output.read_text())["talos"]
+    result = json.loads(output.read_text())
+    talos, same_states = result["talos"], result["talos_same_states"]
     assert set(talos) == {f"{label} {count} levels" for label in ("svd", "qp")
                           for count in (1, 2, 3, 4)}
-    for name, entry in talos.items():
-        label, count = name.split()[:2]
-        previous = talos.get(f"{label} {int(count) - 1} levels")
-        assert entry["over_one_level_less"] == (
-            None if previous is None else entry["median_us"] / previous["median_us"])
+    assert set(same_states) == {f"svd {count} levels" for count in (1, 2, 3, 4)}
+    for figures in (talos, same_states):
+        for name, entry in figures.items():
+            label, count = name.split()[:2]
+            previous = figures.get(f"{label} {int(count) - 1} levels")
+            assert entry["over_one_level_less"] == (
+                None if previous is None else entry["median_us"] / previous["median_us"])
+    # the replay feeds the four-level run its own configurations: the same solutions
+    assert same_states["svd 4 levels"]["mean_clamping_iterations"] == \
+        talos["svd 4 levels"]["mean_clamping_iterations"]
 
 
 def test_bench_pik_runs_the_issue_stack_against_pink(tmp_path):

@@ -234,9 +234,11 @@ def limit_excess(robot, q) -> float:
     return float(np.maximum(0.0, np.maximum(values - robot.upper, robot.lower - values)).max())
 
 
-def race(contenders, robot, start, steps) -> dict:
+def race(contenders, robot, start, steps, states=None) -> dict:
     """Every contender takes step k before any takes step k+1, in an order rotated at each
-    step, so machine noise spreads evenly. Pink errors mark a contender failed."""
+    step, so machine noise spreads evenly. Pink errors mark a contender failed. states: one
+    configuration per step; every contender then takes step k from states[k] instead of
+    from its own last configuration (open loop, the same inputs for all)."""
     from pink.exceptions import PinkError
 
     records = {contender.name: Record() for contender in contenders}
@@ -251,7 +253,8 @@ def race(contenders, robot, start, steps) -> dict:
                 continue
             begin = time.perf_counter_ns()
             try:
-                q, iterations = contender.step(configurations[contender.name])
+                q, iterations = contender.step(configurations[contender.name]
+                                               if states is None else states[step])
             except PinkError as error:
                 record.failed_at, record.failure = step, f"{type(error).__name__}: {error}"
                 continue
@@ -459,6 +462,15 @@ def print_level_table(title, result) -> None:
                         for key in counters))
 
 
+def visited(contender, start, steps) -> list:
+    """The configurations a contender steps from over `steps` steps from start."""
+    states, q = [], start
+    for _ in range(steps):
+        states.append(q)
+        q, _ = contender.step(q)
+    return states
+
+
 def run_levels(args) -> int:
     from threadpoolctl import threadpool_limits
 
@@ -480,12 +492,21 @@ def run_levels(args) -> int:
             race(contenders, robot, start, args.warmup)
             records = race(contenders, robot, start, args.steps)
             results[key] = level_figures(records, contenders, args.warmup + args.steps)
+        # the same configurations for every level count: those the timed four-level run
+        # stepped from
+        svd = [contender for contender in talos_contenders if contender.name.startswith("svd")]
+        states = visited(svd[-1], talos_start, args.steps)
+        results["talos_same_states"] = level_figures(
+            race(svd, talos, talos_start, args.steps, states=states), svd, args.steps)
 
     print(f"stance bench levels: progressive clamping, dt {args.dt} s (velocity bounds), "
           f"{args.steps} timed steps after {args.warmup} warm-up, one BLAS thread; svd = "
           f"DampedHierarchy, qp = QPHierarchy (ProxSuite)")
     print_level_table(f"Talos (nv {talos.model.nv}): feet (12) > CoM xy (2) > both hands (12)"
                       f" > posture, hands moved {hand_offsets} m", results["talos"])
+    print_level_table("Talos, each level count stepping from the configurations of the svd "
+                      "4-level run (open loop): what a level costs on the same inputs",
+                      results["talos_same_states"])
     print_level_table(f"Panda (nv {panda.model.nv}, fixed base): hand pose > posture, hand "
                       f"moved (0.2, 0.2, -0.2) m", results["panda"])
     print("x previous: median over the same hierarchy's median with one level less; iters: "
