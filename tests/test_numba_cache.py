@@ -1,0 +1,36 @@
+"""The library's numba cache is keyed on all its sources: numba itself only notices an
+edit to the file of the function it compiled, not to the files of the compiled functions
+that function calls, and would run stale kernels from its cache."""
+
+import os
+from pathlib import Path
+
+import numba
+import stance  # noqa: F401 - importing the library points numba's cache
+from stance import numba_cache
+
+
+def test_importing_the_library_points_the_cache_at_its_sources_directory():
+    base = os.environ.get("NUMBA_CACHE_DIR") or numba_cache.PACKAGE / "__pycache__"
+    assert Path(numba.config.CACHE_DIR) == Path(base) / f"numba-{numba_cache.source_digest()}"
+
+
+def test_an_edit_to_any_source_changes_the_digest(tmp_path):
+    (tmp_path / "callee.py").write_text("def g(x):\n    return x + 1.0\n")
+    (tmp_path / "caller.py").write_text("from callee import g\n")
+    before = numba_cache.source_digest(tmp_path)
+    assert numba_cache.source_digest(tmp_path) == before
+    (tmp_path / "callee.py").write_text("def g(x):\n    return x + 100.0\n")
+    assert numba_cache.source_digest(tmp_path) != before
+
+
+def test_directories_of_other_sources_are_removed(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    previous = numba.config.CACHE_DIR
+    try:
+        (tmp_path / "numba-0000000000000000").mkdir()
+        directory = numba_cache.use_source_keyed_cache()
+        assert directory.parent == tmp_path and numba.config.CACHE_DIR == str(directory)
+        assert not (tmp_path / "numba-0000000000000000").exists()
+    finally:
+        numba.config.CACHE_DIR = previous
