@@ -6,6 +6,8 @@ exactly on it. With clamping or progressive clamping no limited joint may ever e
 outside its limits, whatever the targets.
 """
 
+import re
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -15,7 +17,7 @@ from hypothesis import strategies as st
 from helpers.problems import random_offset
 from stance.limits import RevoluteLimits, cubic_step, make_strategy
 from stance.pik import PIKSolver, default_stack_specs
-from stance.robot import Robot
+from stance.robot import Robot, RobotModelError
 from stance.stack import TaskSpec
 
 LOWER, UPPER, ACTIVATION = -1.0, 1.0, 0.2
@@ -196,15 +198,16 @@ def test_same_input_gives_bitwise_identical_output(talos):
 
 @pytest.mark.parametrize("strategy", LIMITING_STRATEGIES)
 @PROPERTY
-@given(seed=SEEDS, reachable=st.booleans(), dt=st.sampled_from([None, 0.002]))
+@given(seed=SEEDS, reachable=st.booleans(), dt=st.sampled_from([None, 0.002]),
+       locked=st.sampled_from([(), ("torso_2_joint", "arm_right_4_joint")]))
 def test_the_compiled_clamping_loop_gives_the_python_loops_bits(talos, strategy, seed,
-                                                                reachable, dt):
+                                                                reachable, dt, locked):
     """PIKSolver runs the clamping loop in one compiled call when it can (damped least
     squares, 1-DoF limits only): every step gives the same bits as the general loop."""
     start = random_start(talos, np.random.default_rng(seed))
     solvers = []
     for one_call in (True, False):
-        solver = PIKSolver(talos, strategy=strategy, dt=dt)
+        solver = PIKSolver(talos, strategy=strategy, dt=dt, locked_joints=locked)
         assert solver._one_call_loop
         solver._one_call_loop = one_call
         solver.set_stack(hands_stack(), start)
@@ -244,3 +247,34 @@ def test_warm_up_compiles_the_clamping_loop_whatever_the_strategy():
                           text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "True"
+
+
+@pytest.mark.parametrize("strategy", LIMITING_STRATEGIES)
+def test_locked_joints_never_move_and_are_not_reported_clamped(talos, strategy):
+    """Locked joints keep their value whatever the tasks and limits do, one of them started
+    on its limit, the other far inside; the hands still move."""
+    locked = ("gripper_right_joint", "arm_right_4_joint")
+    rng = np.random.default_rng(11)
+    start = talos.initial_configuration()             # the grippers sit on their limit 0
+    solver = PIKSolver(talos, strategy=strategy, locked_joints=locked)
+    solver.set_stack(hands_stack(), start)
+    set_hand_targets(solver, rng, reachable=False)
+    q_index = [talos.model.joints[talos.joint_id(name)].idx_q for name in locked]
+    dofs = [solver.limited_dof_names.index(name) for name in locked]
+    q = start
+    for _ in range(STEPS):
+        result = solver.step(q)
+        assert not result.clamped[dofs].any() and not result.damping[dofs].any()
+        q = result.q
+    np.testing.assert_array_equal(q[q_index], start[q_index])
+    assert np.abs(q[talos.limited_q_index] - start[talos.limited_q_index]).max() > 0.05
+
+
+@pytest.mark.parametrize("locked, reason", [
+    (["no_such_joint"], "locked_joints[0]: unknown joint"),
+    (["torso_2_joint", "torso_2_joint"], "locked_joints[1]: 'torso_2_joint' named twice"),
+    (["root_joint"], "free-flyer base"),
+])
+def test_bad_locked_joints_are_refused(talos, locked, reason):
+    with pytest.raises(RobotModelError, match=re.escape(reason)):
+        PIKSolver(talos, locked_joints=locked)

@@ -256,11 +256,39 @@ def test_node_variants_run_and_report(tmp_path, parameters, check):
         group.stop_all()
 
 
+def test_locked_joints_stay_where_the_posture_target_pulls(tmp_path):
+    """pik_node with the left gripper locked: a posture target that opens both grippers
+    moves the right one only (a locked joint is left to its own controller)."""
+    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 150) % 200  # away from the module's node
+    group = ProcessGroup(tmp_path)
+    node = group.start("pik_node", "--ros-args", "-p", "locked_joints:=[gripper_left_joint]",
+                       name="pik_node", env={"ROS_DOMAIN_ID": str(domain)})
+    probe = PikProbe("locked_probe", domain_id=domain)
+    try:
+        wait_until(lambda: probe.status_count() > 5 or node.poll() is not None, 60,
+                   what="pik_node status")
+        assert node.poll() is None, node.log_path.read_text()
+        names = list(probe.latest_joint_state().name)
+        start = np.array(probe.latest_joint_state().position)
+        left, right = names.index("gripper_left_joint"), names.index("gripper_right_joint")
+        probe.publish_target("posture", JointState(
+            name=["gripper_left_joint", "gripper_right_joint"], position=[-0.5, -0.5]))
+        wait_until(lambda: probe.latest_joint_state().position[right] < start[right] - 0.1,
+                   15, what="the right gripper to open")
+        assert probe.latest_joint_state().position[left] == start[left]
+        assert "locked: gripper_left_joint" in node.log_path.read_text()
+    finally:
+        probe.close()
+        group.stop_all()
+
+
 @pytest.mark.parametrize("parameter, reason", [
     ("hierarchy:=bogus", "unknown hierarchy"),
     ("strategy:=bogus", "unknown joint limit strategy"),
     ("robot:=no_such_robot", "unknown example-robot-data robot"),
     ("limits_file:=no_such_robot", "no such limit file, nor a shipped one"),
+    ("locked_joints:=[gripper_left_joint, no_such_joint]",
+     "locked_joints[1]: unknown joint 'no_such_joint'"),
 ])
 def test_bad_startup_parameter_is_refused_with_its_reason(tmp_path, parameter, reason):
     group = ProcessGroup(tmp_path)

@@ -74,7 +74,8 @@ def test_the_chair_plan_tracked_with_the_graphs_parameters_holds_every_contact(c
     trajectory = time_optimal_trajectory(robot, path.q, path.event_samples, VELOCITY_SCALE,
                                          trajectory_node["acceleration_limit"])
     solver = PIKSolver(robot, strategy=pik["strategy"], damping=pik["damping"],
-                       activation=pik["activation"], dt=1.0 / rate)
+                       activation=pik["activation"], dt=1.0 / rate,
+                       locked_joints=pik.get("locked_joints", ()))
     gains = {name: trajectory_node[f"{name}_gain"] for name in ("contact", "com", "posture")}
     tracking = track(solver, scene, planner, plan, path, trajectory, rate=rate,
                      target_rate=trajectory_node["rate"], gains=gains)

@@ -37,6 +37,7 @@ from rcl_interfaces.msg import (FloatingPointRange, ParameterDescriptor,
                                 SetParametersResult)
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -73,7 +74,10 @@ class PikNode(Node):
             activation=get("activation").value,
             dt=1.0 / rate if get("velocity_limits").value else None,
             hierarchy=get("hierarchy").value,
-            limit_models=load_limit_file(limit_file, self.robot) if limit_file else ())
+            limit_models=load_limit_file(limit_file, self.robot) if limit_file else (),
+            locked_joints=self.get_parameter_or(
+                "locked_joints", Parameter("locked_joints", Parameter.Type.STRING_ARRAY,
+                                           [])).value)
         stack_file = get("stack_file").value or demo_stack_file(get("robot").value)
         if stack_file is None:
             raise StackError(f"no demo stack ships for robot {get('robot').value!r}: "
@@ -115,7 +119,9 @@ class PikNode(Node):
         self._hierarchy_name = get("hierarchy").value
         self.get_logger().info(
             f"robot {get('robot').value} (nv {self.robot.model.nv}), {len(self.solver.tasks)} "
-            f"tasks, strategy {self.solver.strategy_name}, {rate:g} Hz")
+            f"tasks, strategy {self.solver.strategy_name}, {rate:g} Hz"
+            + (f", locked: {', '.join(self.solver.locked_joints)}"
+               if self.solver.locked_joints else ""))
 
     def _declare_parameters(self):
         def describe(text, read_only=True, **extra):
@@ -145,6 +151,10 @@ class PikNode(Node):
             floating_point_range=[FloatingPointRange(from_value=1e-3, to_value=1.0)]))
         self.declare_parameter("velocity_limits", True, describe(
             "scale each step so no joint exceeds its URDF velocity limit"))
+        # a string array without a default (an empty list would be typed as bytes)
+        self.declare_parameter("locked_joints", Parameter.Type.STRING_ARRAY, describe(
+            "joints the IK never moves (e.g. grippers, which their own controllers "
+            "command); unset: none"))
 
     def _on_set_parameters(self, parameters):
         for parameter in parameters:

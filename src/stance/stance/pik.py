@@ -29,6 +29,7 @@ import pinocchio as pin
 
 from .hierarchy import DampedHierarchy, HierarchySolution, solve_compiled
 from .limits import RevoluteLimits, fix_joints, make_strategy
+from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
 from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
                     step_cap_groups)
@@ -91,12 +92,18 @@ class PIKSolver:
         groups, which take their joints from the revolute model); their DoFs must not
         overlap. Each has v_index, dof_names, fix(), keep_inside() and warm_up(q), as
         swing.SwingTwistRule.
+    locked_joints: names of actuated joints the IK never moves (e.g. grippers, which
+        their own controllers command): their variations are 0 as highest-priority
+        equalities from the first solution of every step on, so no limit or task ever
+        costs a re-solve for them. RobotModelError for an unknown name or the base.
     """
 
     def __init__(self, robot, strategy: str = "progressive", damping: float = 1e-3,
                  activation: float = 0.2, dt: float | None = None, hierarchy="svd",
-                 limit_models=()):
+                 limit_models=(), locked_joints=()):
         self.robot = robot
+        self.locked_joints = list(locked_joints)
+        self._locked_v = _locked_dofs(robot, self.locked_joints)
         self.strategy = make_strategy(strategy)
         self.hierarchy = make_hierarchy(hierarchy, robot, damping, dt)
         self.limits = RevoluteLimits.from_robot(
@@ -178,6 +185,7 @@ class PIKSolver:
         bounds = self._dq_bounds(q) if getattr(self.hierarchy, "uses_bounds", False) else None
         nv = robot.model.nv
         fixed = np.zeros(nv, dtype=bool)
+        fixed[self._locked_v] = True        # at 0, like a clamped joint, from the start
         fixed_dq = np.zeros(nv)
         h = np.zeros(nv)
         if self._one_call_loop and self.strategy.enforces_limits:
@@ -195,6 +203,7 @@ class PIKSolver:
             for model in self.limit_models:
                 model.keep_inside(q, q_next)
         levels, task_errors = self._reports(q, error, step_residuals)
+        fixed[self._locked_v] = False       # reported: fixed by the limits
         return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors,
                           damping=h[self._dof_v_index], clamped=fixed[self._dof_v_index],
                           clamping_iterations=iterations,
@@ -464,6 +473,24 @@ def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):
         from .qp_hierarchy import QPHierarchy
         return QPHierarchy.for_robot(robot, dt=dt, damping=damping)
     raise ValueError(f"unknown hierarchy {hierarchy!r} (expected one of {', '.join(HIERARCHIES)})")
+
+
+def _locked_dofs(robot, names) -> np.ndarray:
+    """Velocity indices of the named joints (RobotModelError: unknown, repeated, or the
+    free-flyer base)."""
+    model, index = robot.model, []
+    for position, name in enumerate(names):
+        if not model.existJointName(name):
+            raise RobotModelError(f"locked_joints[{position}]: unknown joint {name!r}")
+        if name in names[:position]:
+            raise RobotModelError(f"locked_joints[{position}]: {name!r} named twice")
+        joint_id = model.getJointId(name)
+        if robot.floating_base and joint_id == 1:
+            raise RobotModelError(f"locked_joints[{position}]: {name!r} is the free-flyer "
+                                  "base, which the IK always moves")
+        joint = model.joints[joint_id]
+        index.extend(range(joint.idx_v, joint.idx_v + joint.nv))
+    return np.array(index, dtype=np.int64)
 
 
 def _append_levels(jacobian, target, offsets, levels):
