@@ -118,7 +118,7 @@ class RevoluteLimits:
         lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
         thickness = np.minimum(activation, max_activation_fraction * (upper - lower))
         self.table = np.array([lower, upper, lower + thickness, upper - thickness,
-                                thickness]).reshape(5, -1)
+                               thickness]).reshape(5, -1)
         (self.lower, self.upper, self.lower_threshold, self.upper_threshold,
          self.thickness) = self.table  # views
 
@@ -140,7 +140,7 @@ class RevoluteLimits:
         """Fix in place (fixed, fixed_dq, h: nv) the DoFs not fixed yet that dq must not
         move freely; True if any. q: configuration (nq), dq: candidate variation (nv)."""
         return fix_joints(q, dq, self.indices, self.table, progressive, fixed, fixed_dq,
-                           h) > 0
+                          h) > 0
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""

@@ -376,11 +376,11 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
     while True:
         now_fixed, values = fixed.copy(), fixed_dq.copy()   # fixed_dq is 0 where free
         dq = solve_compiled(jacobian, target, offsets, now_fixed, values, solved_fixed,
-                    solved_values, level_bases, level_ranks, level_starts, level_steps,
-                    residuals, damping, rank_tolerance)
+                            solved_values, level_bases, level_ranks, level_starts,
+                            level_steps, residuals, damping, rank_tolerance)
         solutions += 1
         if fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
-                       h) == 0:
+                      h) == 0:
             return dq, level_steps, residuals, solutions
         solved_fixed, solved_values = now_fixed, values
 
@@ -478,19 +478,15 @@ def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):
 def _locked_dofs(robot, names) -> np.ndarray:
     """Velocity indices of the named joints (RobotModelError: unknown, repeated, or the
     free-flyer base)."""
-    model, index = robot.model, []
     for position, name in enumerate(names):
-        if not model.existJointName(name):
+        if not robot.model.existJointName(name):
             raise RobotModelError(f"locked_joints[{position}]: unknown joint {name!r}")
         if name in names[:position]:
             raise RobotModelError(f"locked_joints[{position}]: {name!r} named twice")
-        joint_id = model.getJointId(name)
-        if robot.floating_base and joint_id == 1:
+        if robot.model.getJointId(name) not in robot.actuated_joint_ids:
             raise RobotModelError(f"locked_joints[{position}]: {name!r} is the free-flyer "
                                   "base, which the IK always moves")
-        joint = model.joints[joint_id]
-        index.extend(range(joint.idx_v, joint.idx_v + joint.nv))
-    return np.array(index, dtype=np.int64)
+    return robot.velocity_indices(names)
 
 
 def _append_levels(jacobian, target, offsets, levels):

@@ -146,6 +146,14 @@ class Robot:
             raise RobotModelError(f"unknown joint {joint!r}")
         return self.model.getJointId(joint)
 
+    def velocity_indices(self, joints) -> np.ndarray:
+        """Indices into a velocity (nv) of the named joints' DoFs, in order."""
+        index = []
+        for name in joints:
+            joint = self.model.joints[self.joint_id(name)]
+            index.extend(range(joint.idx_v, joint.idx_v + joint.nv))
+        return np.array(index, dtype=np.int64)
+
     def actuated_positions(self, q: np.ndarray) -> dict:
         """Actuated 1-DoF joint positions by name (rad or m)."""
         return {name: float(q[self.model.joints[jid].idx_q])

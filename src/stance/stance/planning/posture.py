@@ -160,10 +160,7 @@ class PostureGenerator:
         limited = self.robot.limited_v_index
         self._limited_v, self._limited_q = limited, self.robot.limited_q_index
         self._base_nv = self.robot.base_nv
-        self._locked_v = np.array([index for name in scene.locked_joints
-                                   for joint in [model.joints[model.getJointId(name)]]
-                                   for index in range(joint.idx_v, joint.idx_v + joint.nv)],
-                                  dtype=int)
+        self._locked_v = self.robot.velocity_indices(scene.locked_joints)
         self._regions = {}
         self.calls = 0
 
