@@ -14,8 +14,11 @@ from scipy.optimize import lsq_linear
 from helpers.problems import hierarchy_problems, residual
 from stance.hierarchy import DampedHierarchy, Level
 from stance.pik import PIKSolver, default_stack_specs
-from stance.qp_hierarchy import QPHierarchy, robot_dof_names
+from stance.qp_hierarchy import (COLD_MAX_ITERATIONS, INNER_MAX_ITERATIONS,
+                                 WARM_MAX_ITERATIONS, QPHierarchy, robot_dof_names)
 from stance.robot import Robot
+from stance_tools.bench import (HANDS_FORWARD, TALOS_LEVEL_STACK, bench_start,
+                                level_contenders, limit_excess)
 
 DAMPING = 1e-3
 AGREEMENT = 1e-7          # rad: QPHierarchy vs DampedHierarchy without binding bounds
@@ -167,15 +170,6 @@ def talos_solver(robot, q, hierarchy, hand_offset, dt=None):
     return solver
 
 
-def bench_start(robot) -> np.ndarray:
-    """half_sitting with the grippers 0.01 rad inside their upper limit 0."""
-    q = robot.initial_configuration()
-    for joint in ("gripper_left_joint", "gripper_right_joint"):
-        index = robot.model.joints[robot.joint_id(joint)].idx_q
-        q[index] = robot.model.upperPositionLimit[index] - 0.01
-    return q
-
-
 def test_talos_steps_agree_with_the_damped_hierarchy_inside_the_limits(talos):
     q = bench_start(talos)
     offset = [0.1, -0.1, 0.1]
@@ -233,3 +227,30 @@ def test_talos_repeated_steps_are_reproducible(talos):
         np.testing.assert_allclose(result.dq, results[0].dq, rtol=0, atol=1e-9)
         assert result.binding_constraints == results[0].binding_constraints
     assert np.array_equal(results[0].dq, results[1].dq)
+
+
+def test_proxsuite_work_per_level_is_bounded(talos):
+    """The issue's stack with both hands reaching into the torso's and wrists' limits: the
+    clamped posture level's bound sets are degenerate (many of zero width), where a warm
+    start capped in outer iterations only once ran 4,500 inner ones (120 ms). A level's
+    QP, warm start and cold fallback together, stays within the caps."""
+    start = bench_start(talos)
+    contender = next(contender for contender in level_contenders(
+        talos, TALOS_LEVEL_STACK, start, HANDS_FORWARD, 0.002, (4,))
+        if contender.name.startswith("qp"))
+    hierarchy = contender.solver.hierarchy
+    solve, spent = hierarchy._qp_solve, []
+
+    def counted(*args):
+        before = hierarchy.qp_iterations
+        qp = solve(*args)
+        spent.append(hierarchy.qp_iterations - before)
+        return qp
+
+    hierarchy._qp_solve = counted
+    q = start
+    for _ in range(140):
+        q, _ = contender.step(q)
+    assert len(spent) > 100 and hierarchy.cold_starts > 0   # the bounds did bind
+    assert max(spent) <= (WARM_MAX_ITERATIONS + COLD_MAX_ITERATIONS) * INNER_MAX_ITERATIONS
+    assert limit_excess(talos, q) == 0.0

@@ -17,15 +17,19 @@ is reported.
 
 Per level, the unconstrained damped least squares y is kept when it respects the bounds:
 the result is then DampedHierarchy's (to rounding). Otherwise a persistent ProxSuite dense
-QP (one per level and size) is updated and warm-started from its previous result (iterations
-capped, cold start when that fails), solved to eps_abs 1e-9, then polished: the problem
-with the active bounds it found as equalities is solved exactly and kept when nonnegative
-multipliers exist (a KKT certificate that makes the result independent of the warm start;
-a few active set corrections are tried). Otherwise ProxSuite's solution is kept if it
-respects the bounds to 1e-9, else the level gives up (y = 0) rather than break a bound.
+QP (one per level and size) is updated and warm-started from its previous result, cold
+started when that fails, to eps_abs 1e-9 within a bounded number of iterations (outer and
+inner: ProxSuite's max_iter alone caps only the outer ones, and a warm start once ran
+4,500 inner iterations, 120 ms). Its duals then seed the polish: the problem with the
+active bounds they show as equalities is solved exactly and kept when nonnegative
+multipliers exist (a KKT certificate that makes the result independent of the warm start
+and of how far ProxSuite got; a few active set corrections are tried). Where the polish
+finds no KKT point, an exact primal active-set method from y = 0 gives the level's step.
 """
 
 from __future__ import annotations
+
+import weakref
 
 import numpy as np
 import scipy.optimize
@@ -35,8 +39,12 @@ from .hierarchy import (HierarchySolution, _damped_least_squares, _nullspace_upd
                         stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
-WARM_MAX_ITERATIONS = 100    # a warm start needing more is abandoned for a cold start
-COLD_MAX_ITERATIONS = 1000
+# ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
+# needs the active set, so a bounded solve costs less than waiting for 1e-9 on the
+# degenerate bound sets of a clamped posture level (many bounds of zero width).
+WARM_MAX_ITERATIONS = 10     # a warm start needing more is abandoned for a cold start
+COLD_MAX_ITERATIONS = 100
+INNER_MAX_ITERATIONS = 10
 FEASIBILITY_SLACK = 1e-12    # rad or m: polished y may exceed a bound by this much
 MULTIPLIER_SLACK = 1e-9      # relative to |gradient|: tolerated wrong-sign multiplier
 POLISH_ROUNDS = 8            # active set corrections tried by the polish
@@ -94,9 +102,13 @@ class QPHierarchy:
         self.velocity_steps = None if velocity_steps is None else np.asarray(velocity_steps,
                                                                              dtype=float)
         self._qps = {}
+        # ProxSuite objects still alive when the interpreter exits make nanobind report
+        # them as leaks: drop them first (atexit runs before modules are torn down)
+        weakref.finalize(self, self._qps.clear)
         self.qp_solves = 0        # levels that needed a QP, since construction
         self.cold_starts = 0      # of which warm start failed or no QP of that size existed
-        self.unpolished = 0       # of which the polish found no KKT point (ProxSuite's kept)
+        self.unpolished = 0       # of which the polish found no KKT point (solved exactly)
+        self.qp_iterations = 0    # ProxSuite's inner iterations, warm and cold solves
 
     @classmethod
     def for_robot(cls, robot, dt: float | None = None, **options) -> QPHierarchy:
@@ -175,6 +187,7 @@ class QPHierarchy:
         if qp is not None:
             qp.update(H=hessian, g=gradient, C=rows, l=low, u=high)
             qp.solve()
+            self.qp_iterations += qp.results.info.iter
             if qp.results.info.status == proxqp.QPSolverOutput.PROXQP_SOLVED:
                 return qp
         self.cold_starts += 1
@@ -183,6 +196,7 @@ class QPHierarchy:
         qp = self._qps[key] = _new_qp(rows.shape)
         qp.init(hessian, gradient, None, None, rows, low, high)
         qp.solve()
+        self.qp_iterations += qp.results.info.iter
         qp.settings.initial_guess = proxqp.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
         qp.settings.max_iter = WARM_MAX_ITERATIONS
         return qp
@@ -218,6 +232,7 @@ def _new_qp(shape):
     qp.settings.eps_abs = QP_TOLERANCE
     qp.settings.eps_rel = 0.0
     qp.settings.max_iter = COLD_MAX_ITERATIONS
+    qp.settings.max_iter_in = INNER_MAX_ITERATIONS
     qp.settings.verbose = False
     return qp
 
