@@ -290,11 +290,13 @@ def figures(records, evaluator) -> dict:
 
 
 def timing_us(record) -> dict:
-    """Median and 99th percentile of a record's step times (us), None if it has none."""
+    """Median, 99th percentile and worst of a record's step times (us), None if it has
+    none: the worst step is what a fixed-rate loop misses its period by."""
     times = np.array(record.times_ns) / 1e3
     if not len(times):
-        return {"median_us": None, "p99_us": None}
-    return {"median_us": float(np.median(times)), "p99_us": float(np.percentile(times, 99))}
+        return {"median_us": None, "p99_us": None, "max_us": None}
+    return {"median_us": float(np.median(times)), "p99_us": float(np.percentile(times, 99)),
+            "max_us": float(times.max())}
 
 
 def start_note(robot, specs, targets, backends, dt) -> str:
@@ -319,8 +321,8 @@ def start_note(robot, specs, targets, backends, dt) -> str:
 
 def print_table(result, errors_order) -> None:
     task_columns = "".join(f"{name:>12}" for name in errors_order)
-    print(f"{'contender':<24}{'median us':>10}{'p99 us':>10}{'iters':>7}{'excess rad':>12}"
-          f"{task_columns}{'stance/pink':>13}")
+    print(f"{'contender':<24}{'median us':>10}{'p99 us':>10}{'max us':>10}{'iters':>7}"
+          f"{'excess rad':>12}{task_columns}{'stance/pink':>13}")
     for name, entry in result.items():
         if entry["median_us"] is None:
             print(f"{name:<24} failed at timed step {entry['failed_at_step']}: "
@@ -330,7 +332,7 @@ def print_table(result, errors_order) -> None:
         errors = entry["final_task_errors"]
         ratio = entry["stance_over_pink_median"]
         print(f"{name:<24}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
-              f"{'-' if iterations is None else f'{iterations:.2f}':>7}"
+              f"{entry['max_us']:>10.1f}{'-' if iterations is None else f'{iterations:.2f}':>7}"
               f"{entry['max_limit_excess']:>12.2e}"
               + "".join(f"{errors[task]:>12.2e}" for task in errors_order)
               + f"{'-' if ratio is None else f'{ratio:.2f}':>13}")
@@ -451,12 +453,13 @@ def level_figures(records, contenders, steps) -> dict:
 def print_level_table(title, result) -> None:
     print(title)
     counters = ("qp_solves_per_step", "cold_starts_per_step", "unpolished_per_step")
-    print(f"{'contender':<16}{'median us':>10}{'p99 us':>10}{'iters':>7}{'excess rad':>12}"
-          f"{'x previous':>12}{'QPs':>7}{'cold':>7}{'unpol':>7}")
+    print(f"{'contender':<16}{'median us':>10}{'p99 us':>10}{'max us':>10}{'iters':>7}"
+          f"{'excess rad':>12}{'x previous':>12}{'QPs':>7}{'cold':>7}{'unpol':>7}")
     for name, entry in result.items():
         ratio = entry["over_one_level_less"]
         print(f"{name:<16}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
-              f"{entry['mean_clamping_iterations']:>7.2f}{entry['max_limit_excess']:>12.2e}"
+              f"{entry['max_us']:>10.1f}{entry['mean_clamping_iterations']:>7.2f}"
+              f"{entry['max_limit_excess']:>12.2e}"
               f"{'-' if ratio is None else f'{ratio:.2f}':>12}"
               + "".join(f"{'-' if entry[key] is None else f'{entry[key]:.2f}':>7}"
                         for key in counters))
