@@ -6,8 +6,12 @@ import math
 import os
 
 import numpy as np
+import pinocchio as pin
 import pytest
 from conftest import wait_until
+from geometry_msgs.msg import Pose
+from pik_node.conversions import se3_from_pose_msg
+from pik_node.node import fill_pose_msg
 from stance_tools.processes import ProcessGroup
 from helpers.probe import PikProbe, point_target, pose_target, task_status
 from sensor_msgs.msg import JointState
@@ -15,6 +19,18 @@ from stance_msgs.msg import TaskSpec
 from stance_msgs.srv import SetStack, SetTaskEnabled
 
 DEMO_TASKS = ["left_foot", "right_foot", "com", "right_hand", "posture"]
+
+
+def test_pose_messages_carry_the_placement():
+    """fill_pose_msg (the status' task poses, the base pose, the streamed targets) from a
+    placement or a free flyer's q[:7]: the message reads back as the same placement."""
+    placement = pin.SE3(pin.rpy.rpyToMatrix(0.3, -1.1, 2.5), np.array([0.4, -0.2, 0.9]))
+    from_placement, from_q = Pose(), Pose()
+    fill_pose_msg(from_placement, pin.SE3ToXYZQUAT(placement))
+    fill_pose_msg(from_q, np.concatenate([placement.translation,
+                                          pin.Quaternion(placement.rotation).coeffs()]))
+    assert from_placement == from_q
+    assert se3_from_pose_msg(from_placement).isApprox(placement, 1e-12)
 
 
 @pytest.fixture(scope="module")

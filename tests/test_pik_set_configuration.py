@@ -49,7 +49,7 @@ def settled(probe):
 
 def request_for(robot, q, joints=None):
     request = SetConfiguration.Request()
-    fill_pose_msg(request.base_pose, q[:3], q[3:7])
+    fill_pose_msg(request.base_pose, q[:7])
     positions = joints if joints is not None else robot.actuated_positions(q)
     request.joints.name = list(positions)
     request.joints.position = [float(v) for v in positions.values()]

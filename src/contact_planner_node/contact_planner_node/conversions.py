@@ -109,7 +109,7 @@ def contact_msg(contact: Contact, surface) -> ContactMsg:
     msg = ContactMsg(spot=contact.spot, surface=contact.surface,
                      friction=float(surface.friction), in_stability=contact.in_stability)
     frame = contact.contact_frame(surface)
-    fill_pose_msg(msg.pose, frame.translation, pin.Quaternion(frame.rotation).coeffs())
+    fill_pose_msg(msg.pose, pin.SE3ToXYZQUAT(frame))
     return msg
 
 
@@ -161,7 +161,7 @@ def stance_plan_msg(plan, scene, robot, stamp) -> StancePlan:
             contacts=[contact_msg(c, scene.surfaces[c.surface]) for c in stance.contacts],
             witness_joints=JointState(header=header, name=list(joints),
                                       position=list(joints.values())))
-        fill_pose_msg(stance_msg.witness_base_pose, stance.q[:3], stance.q[3:7])
+        fill_pose_msg(stance_msg.witness_base_pose, stance.q[:7])
         msg.stances.append(stance_msg)
     return msg
 

@@ -59,7 +59,7 @@ def plan_from_msg(msg, robot, robot_spec: str):
 def configuration_request(robot, q: np.ndarray) -> SetConfiguration.Request:
     """/pik/set_configuration request for configuration q (nq)."""
     request = SetConfiguration.Request()
-    fill_pose_msg(request.base_pose, q[:3], q[3:7])
+    fill_pose_msg(request.base_pose, q[:7])
     joints = robot.actuated_positions(q)
     request.joints = JointState(name=list(joints), position=list(joints.values()))
     return request

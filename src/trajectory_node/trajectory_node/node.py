@@ -458,8 +458,7 @@ class TrajectoryNode(Node):
                 target.point.x, target.point.y, target.point.z = (float(v) for v in value)
             else:
                 target = PoseStamped(header=header)
-                fill_pose_msg(target.pose, value.translation,
-                              pin.Quaternion(value.rotation).coeffs())
+                fill_pose_msg(target.pose, pin.SE3ToXYZQUAT(value))
             self._target_publisher(spec).publish(target)
 
     def _target_publisher(self, spec):
