@@ -1,6 +1,9 @@
 """Tracking a timed plan offline (stance.execution.tracking), as trajectory_node and pik_node
-do together: the execution stack per transition, and the shipped chair plan tracked with
-the default graph's parameters holding every contact within check-run's tolerance."""
+do together: the execution stack per transition, the shipped chair plan tracked with the
+default graph's parameters holding every contact within check-run's tolerance, and the
+arrival gate: a contact is created only once its frame is there."""
+
+import math
 
 from pathlib import Path
 
@@ -10,8 +13,10 @@ import pytest
 import yaml
 
 from stance.execution.interpolation import TransitionPlanner
-from stance.execution.timing import time_optimal_trajectory
-from stance.execution.tracking import GAINS, task_targets, track, transition_tasks
+from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
+from stance.execution.tracking import (ARRIVAL_TOLERANCE, GAINS, ArrivalGate,
+                                       created_contacts, task_targets, track,
+                                       transition_tasks)
 from stance.pik import PIKSolver
 from stance.planning.collision import CollisionModel
 from stance.planning.contacts import load_plan
@@ -83,3 +88,66 @@ def test_the_chair_plan_tracked_with_the_graphs_parameters_holds_every_contact(c
     assert tracking.transitions[-1] == len(plan.stances) - 2
     assert error < CONTACT_TOLERANCE, f"{error * 1e3:.2f} mm at t = {time:.2f} s, " \
                                       f"transition {transition}"
+    assert tracking.holds == [], "the chair plan waited for a contact without any load"
+
+
+def test_the_arrival_gate_waits_for_every_created_contact_within_both_tolerances():
+    target = pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 0.3), np.array([0.4, -0.1, 0.0]))
+    position, angle = ARRIVAL_TOLERANCE
+    gate = ArrivalGate({"left_sole": target, "right_hand": target}, timeout=2.0)
+    near = target * pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.5 * angle),
+                            np.array([0.0, 0.5 * position, 0.0]))
+    shifted = target * pin.SE3(np.eye(3), np.array([2.0 * position, 0.0, 0.0]))
+    turned = target * pin.SE3(pin.rpy.rpyToMatrix(2.0 * angle, 0.0, 0.0), np.zeros(3))
+    assert not gate.update({"left_sole": near}, now=10.0)        # right_hand: no pose yet
+    assert set(gate.late) == {"right_hand"} and gate.late["right_hand"][0] == math.inf
+    assert not gate.update({"left_sole": shifted, "right_hand": near}, now=10.5)
+    assert gate.late["left_sole"] == pytest.approx((2.0 * position, 0.0), abs=1e-12)
+    assert "left_sole 2.0 mm, 0.000 rad off" == gate.describe_late()
+    assert not gate.update({"left_sole": near, "right_hand": turned}, now=11.0)
+    assert gate.late["right_hand"][1] == pytest.approx(2.0 * angle)
+    assert gate.waited(11.0) == 1.0 and not gate.timed_out(11.0) and gate.timed_out(12.5)
+    assert gate.update({"left_sole": near, "right_hand": target}, now=11.5)
+    assert gate.late == {} and gate.waited(11.5) == 1.5
+    assert ArrivalGate({}).update({}, now=0.0) and ArrivalGate({}).waited(3.0) == 0.0
+
+
+def test_created_contacts_are_the_moving_spots_landing_at_the_next_stance(flat_steps_plan):
+    robot, scene, plan = flat_steps_plan
+    planner = TransitionPlanner(robot, scene, CollisionModel(robot, scene), steps=10)
+    for index in range(len(plan.stances) - 1):
+        first, second = plan.stances[index], plan.stances[index + 1]
+        created = created_contacts(scene, planner, plan, index)
+        before = {c.spot: (c.surface, c.x, c.y, c.theta) for c in first.contacts}
+        expected = {c.spot for c in second.contacts
+                    if before.get(c.spot) != (c.surface, c.x, c.y, c.theta)}
+        assert set(created) == expected
+        _, held_next = transition_tasks(scene, planner, plan, index + 1, GAINS) \
+            if index + 2 < len(plan.stances) else (None, {})
+        for spot, target in created.items():
+            if spot in held_next:   # the next transition holds it at the same target
+                assert np.allclose(held_next[spot].homogeneous, target.homogeneous)
+
+
+def test_a_lagging_contact_is_created_only_once_it_has_arrived(flat_steps_plan):
+    """Soles tracked with a weak contact gain (0.02: a stand-in for an IK that falls behind
+    under load) at half the URDF speeds: without the gate a sole is held at its exact
+    contact from centimetres away and dragged; with it every transition end that lags
+    waits, and no held contact is ever off by more than the arrival tolerance."""
+    robot, scene, plan = flat_steps_plan
+    planner = TransitionPlanner(robot, scene, CollisionModel(robot, scene), steps=10)
+    path = planner.interpolate(plan)
+    trajectory = sinusoidal_trajectory(robot, path.q, path.event_samples, 0.5)
+    gains = {**GAINS, "contact": 0.02}
+
+    def tracked(tolerance):
+        return track(PIKSolver(robot, dt=1.0 / 500.0), scene, planner, plan, path,
+                     trajectory, gains=gains, tolerance=tolerance)
+
+    ungated, gated = tracked((math.inf, math.inf)), tracked(ARRIVAL_TOLERANCE)
+    assert ungated.holds == [] and ungated.worst()[0] > 10.0 * ARRIVAL_TOLERANCE[0]
+    assert gated.holds and all(arrived for _, _, arrived in gated.holds)
+    assert gated.worst()[0] <= ARRIVAL_TOLERANCE[0] + 1e-6
+    assert gated.times[-1] == pytest.approx(trajectory.duration + sum(
+        waited for _, waited, _ in gated.holds), abs=0.05)
+    assert gated.transitions[-1] == len(plan.stances) - 2

@@ -11,10 +11,19 @@ the moving spots, CoM and posture are the forward kinematics of the trajectory s
 when the trajectory reaches a stance. It measures how far every held contact's frame is
 from its target (m), the quantity `stance check-run` bounds, and how often the velocity
 limits had to slow the motion. Deterministic: the same inputs give the same tracking.
+
+Contacts are created only where the robot is: at the end of a transition that creates
+contacts, the trajectory's clock holds (`ArrivalGate`) until each created contact's frame
+is within ARRIVAL_TOLERANCE of its exact target, and only then does the next stack hold it
+at priority 0. The time law has the robot at rest there, so waiting costs nothing when the
+IK keeps up; when it lags (a loaded machine, missed control periods, velocity limits),
+holding the contact at its exact target from a frame still centimetres away would drag it
+along the surface.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +32,10 @@ import pinocchio as pin
 from ..stack import TaskSpec
 
 GAINS = {"contact": 0.5, "com": 0.5, "posture": 0.3}  # trajectory_node's defaults
+# (m, rad): a created contact's frame this close to its exact target counts as arrived;
+# half check-run's 2 mm contact tolerance, reached within a few IK steps of rest
+ARRIVAL_TOLERANCE = (1e-3, 1e-2)
+ARRIVAL_TIMEOUT = 5.0   # s a transition's end waits for its created contacts at most
 
 
 def held_frame_target(scene, contact) -> pin.SE3:
@@ -55,6 +68,58 @@ def transition_tasks(scene, planner, plan, transition: int, gains) -> tuple:
     return specs, {contact.spot: held_frame_target(scene, contact) for contact in held}
 
 
+def created_contacts(scene, planner, plan, transition: int) -> dict:
+    """{spot: frame target (pin.SE3, world)} of the contacts transition `transition`
+    (stance i -> i + 1) creates: spots moving in it and in contact in stance i + 1."""
+    first, second = plan.stances[transition], plan.stances[transition + 1]
+    return {spot: held_frame_target(scene, after)
+            for spot, (_, _, after) in planner.moving_paths(first, second).items()
+            if after is not None}
+
+
+class ArrivalGate:
+    """Whether the contacts a transition creates are made, so that its end may pass.
+
+    targets: {spot: frame target (pin.SE3, world)} (created_contacts); tolerance: (m, rad);
+    timeout: s the end waits at most. `update` is called at every tick the trajectory sits
+    at the transition's end, with the frames' current poses."""
+
+    def __init__(self, targets: dict, tolerance=ARRIVAL_TOLERANCE,
+                 timeout: float = ARRIVAL_TIMEOUT):
+        self.targets, self.tolerance, self.timeout = targets, tolerance, timeout
+        self.waiting_since = None   # s (the caller's clock) of the first update not arrived
+        self.late = {}              # {spot: (m, rad)} off target at the last update
+
+    def update(self, poses: dict, now: float) -> bool:
+        """True when every created contact's frame (poses: {spot: pin.SE3}; a missing spot
+        is not arrived) is within tolerance of its target; False while it is not."""
+        self.late = {}
+        for spot, target in self.targets.items():
+            pose = poses.get(spot)
+            if pose is None:
+                self.late[spot] = (math.inf, math.inf)
+                continue
+            offset = (math.dist(pose.translation, target.translation),
+                      float(np.linalg.norm(pin.log3(target.rotation.T @ pose.rotation))))
+            if offset[0] > self.tolerance[0] or offset[1] > self.tolerance[1]:
+                self.late[spot] = offset
+        if self.late and self.waiting_since is None:
+            self.waiting_since = now
+        return not self.late
+
+    def waited(self, now: float) -> float:
+        """s spent waiting so far (0 when the contacts were there at once)."""
+        return 0.0 if self.waiting_since is None else now - self.waiting_since
+
+    def timed_out(self, now: float) -> bool:
+        return self.waited(now) > self.timeout
+
+    def describe_late(self) -> str:
+        """'spot 12.3 mm, 0.045 rad off; ...' for the contacts not arrived."""
+        return "; ".join(f"{spot} {1e3 * position:.1f} mm, {angle:.3f} rad off"
+                         for spot, (position, angle) in sorted(self.late.items()))
+
+
 def task_targets(model, data, stack, held, q) -> dict:
     """{task name: target} of `stack` at configuration q (nq), as trajectory_node streams
     them: held contacts their exact frame target (pin.SE3), other frames their pose at q
@@ -76,12 +141,15 @@ def task_targets(model, data, stack, held, q) -> dict:
 @dataclass
 class Tracking:
     """Per IK step: time (s from the start), transition index, largest held-contact frame
-    position error after the step (m), velocity-limit factor (1: not slowed)."""
+    position error after the step (m), velocity-limit factor (1: not slowed). holds: per
+    transition end that waited for its created contacts (ArrivalGate), (transition, s
+    waited, arrived: False when it timed out)."""
 
     times: np.ndarray
     transitions: np.ndarray
     held_error: np.ndarray
     velocity_scale: np.ndarray
+    holds: list
 
     def worst(self) -> tuple:
         """(error m, time s, transition) of the largest held-contact error."""
@@ -90,38 +158,58 @@ class Tracking:
 
 
 def track(solver, scene, planner, plan, path, trajectory, rate: float = 500.0,
-          target_rate: float = 100.0, gains=None) -> Tracking:
+          target_rate: float = 100.0, gains=None, tolerance=ARRIVAL_TOLERANCE,
+          timeout: float = ARRIVAL_TIMEOUT) -> Tracking:
     """Track the timed plan with `solver` (a PIKSolver; its dt should be 1 / rate) from the
-    first witness. path: planner.interpolate(plan); trajectory: its timing."""
+    first witness. path: planner.interpolate(plan); trajectory: its timing. The clock
+    holds at each transition's end until its created contacts are made (ArrivalGate with
+    tolerance (m, rad) and timeout s: a timed-out wait is recorded, and tracking goes on)."""
     gains = GAINS if gains is None else gains
     model = solver.robot.model
     data, scratch = pin.Data(model), pin.Data(model)
     boundaries = trajectory.times[path.stance_samples]
     last = len(plan.stances) - 2
-    steps = int(np.ceil(trajectory.duration * rate))
     refresh = max(1, int(round(rate / target_rate)))
-    times = np.arange(steps) / rate
-    transitions = np.zeros(steps, dtype=np.int64)
-    held_error, velocity_scale = np.zeros(steps), np.ones(steps)
+    times, transitions, held_error, velocity_scale, holds = [], [], [], [], []
     q = plan.stances[0].q.copy()
-    transition = 0
-    stack, held = transition_tasks(scene, planner, plan, 0, gains)
-    solver.set_stack(stack, q)
+    transition, clock, k = 0, 0.0, 0      # clock: s of trajectory time (frozen by holds)
+
+    def enter(index):
+        stack, held = transition_tasks(scene, planner, plan, index, gains)
+        solver.set_stack(stack, q)
+        gate = ArrivalGate(created_contacts(scene, planner, plan, index), tolerance, timeout)
+        return stack, held, gate
+
+    stack, held, gate = enter(0)
     frames = {spot: model.getFrameId(scene.spots[spot].frame) for spot in scene.spots}
-    for k, t in enumerate(times):
-        while transition < last and t >= boundaries[transition + 1]:
-            transition += 1
-            stack, held = transition_tasks(scene, planner, plan, transition, gains)
-            solver.set_stack(stack, q)
+    pin.framesForwardKinematics(model, data, q)
+    while True:
+        now = k / rate
+        if clock >= boundaries[transition + 1]:
+            arrived = gate.update({spot: data.oMf[frames[spot]] for spot in gate.targets}, now)
+            if not (arrived or gate.timed_out(now)):
+                clock = boundaries[transition + 1]
+            else:
+                if gate.waiting_since is not None:
+                    holds.append((transition, gate.waited(now), arrived))
+                if transition == last:
+                    break
+                transition += 1
+                stack, held, gate = enter(transition)
         if k % refresh == 0:
             for name, target in task_targets(model, scratch, stack, held,
-                                             trajectory.sample(t)[0]).items():
+                                             trajectory.sample(clock)[0]).items():
                 solver.task(name).target = target
         result = solver.step(q)
         q = result.q
         pin.framesForwardKinematics(model, data, q)
-        transitions[k], velocity_scale[k] = transition, result.velocity_scale
-        held_error[k] = max((np.linalg.norm(data.oMf[frames[spot]].translation
-                                            - target.translation)
-                             for spot, target in held.items()), default=0.0)
-    return Tracking(times, transitions, held_error, velocity_scale)
+        times.append(now)
+        transitions.append(transition)
+        velocity_scale.append(result.velocity_scale)
+        held_error.append(max((np.linalg.norm(data.oMf[frames[spot]].translation
+                                              - target.translation)
+                               for spot, target in held.items()), default=0.0))
+        k += 1
+        clock = min(clock + 1.0 / rate, trajectory.duration)
+    return Tracking(np.array(times), np.array(transitions, dtype=np.int64),
+                    np.array(held_error), np.array(velocity_scale), holds)
