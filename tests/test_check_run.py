@@ -1,7 +1,8 @@
 """`stance check-run` on a bag recorded from a real flat_steps execution (pik_node,
 trajectory_node at the demo's speed, stabilizer_gate_node and `stance record` as processes,
 the plan computed in-process and published as contact_planner_node would): every check
-passes, exit 0. On a
+passes, exit 0; so does a run whose pik_node lags (the soles trail their path) and whose
+clock therefore waited for each sole to land. On a
 rewritten copy of the bag with a joint pushed beyond its limit, and on altered arrays fed
 to the check functions, the check concerned fails (exit 1 naming it)."""
 
@@ -56,8 +57,10 @@ class PlanPublisher(BackgroundNode):
                    for topic, count in READY_SUBSCRIBERS.items())
 
 
-def record_flat_steps_run(directory):
-    """Execute flat_steps through the nodes while recording; returns the bag path."""
+def record_flat_steps_run(directory, velocity_scale=VELOCITY_SCALE, trajectory_args=()):
+    """Execute flat_steps through the nodes while recording (trajectory_node at
+    velocity_scale, with trajectory_args: more `-p name:=value`); returns (the bag path,
+    trajectory_node's statuses)."""
     robot = Robot.load("talos")
     scene = load_scene("flat_steps", robot)
     outcome = plan_contacts(robot, PlanRequest(scene=scene, ordered_sons=True))
@@ -68,7 +71,8 @@ def record_flat_steps_run(directory):
     try:
         group.start("pik_node", name="pik_node")
         group.start("trajectory_node", "--ros-args", "-p", f"samples_per_transition:={STEPS}",
-                    "-p", f"velocity_scale:={VELOCITY_SCALE}", name="trajectory_node")
+                    "-p", f"velocity_scale:={velocity_scale}", *trajectory_args,
+                    name="trajectory_node")
         group.start("stabilizer_gate_node", "--ros-args", "-p", "scene:=flat_steps",
                     name="stabilizer_gate_node")
         recorder = group.start("stance", "record", "-o", str(bag), *PIPELINE_TOPICS,
@@ -86,12 +90,12 @@ def record_flat_steps_run(directory):
         if probe is not None:
             probe.close()
         group.stop_all()
-    return bag
+    return bag, probe.statuses
 
 
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory):
-    return record_flat_steps_run(tmp_path_factory.mktemp("check_run"))
+    return record_flat_steps_run(tmp_path_factory.mktemp("check_run"))[0]
 
 
 @pytest.fixture(scope="module")
@@ -249,3 +253,18 @@ def test_lagging_joint_states_are_checked_on_the_support_they_track(report):
     # 2 mm tolerance, since a foot lands slowly: which side of it varies from run to run)
     positions = {spot: values[source] for spot, values in report.positions.items()}
     assert check_run.check_contacts(delayed, scene, positions).passed
+
+
+def test_a_run_that_waited_for_its_contacts_passes_every_check(tmp_path):
+    """pik_node made to lag (contact gain 0.02) at the node's own speed: trajectory_node
+    waits at each landing and announces those stances again; check-run reads each stance
+    once, stamped when it was reached, follows the waits in the command's time, and every
+    check passes (a sole held from its planned, earlier stamp would be centimetres off)."""
+    bag, statuses = record_flat_steps_run(tmp_path, 0.5, ("-p", "contact_gain:=0.02"))
+    waits = [status for status in statuses if "reached after waiting" in status]
+    assert len(waits) >= 3, statuses
+    report = check_run.check_bag(bag)
+    assert report.passed, [(c.name, c.failures) for c in report.checks]
+    plan_length = int(next(s for s in statuses if s.startswith("executing: ")).split()[1])
+    assert len(report.run.stances) == plan_length
+    assert np.all(np.diff(report.run.stamps) > 0.0)

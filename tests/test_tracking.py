@@ -109,6 +109,7 @@ def test_the_arrival_gate_waits_for_every_created_contact_within_both_tolerances
     assert gate.waited(11.0) == 1.0 and not gate.timed_out(11.0) and gate.timed_out(12.5)
     assert gate.update({"left_sole": near, "right_hand": target}, now=11.5)
     assert gate.late == {} and gate.waited(11.5) == 1.5
+    assert set(gate.late_when_due) == {"right_hand"}   # what was missing when due
     assert ArrivalGate({}).update({}, now=0.0) and ArrivalGate({}).waited(3.0) == 0.0
 
 

@@ -5,8 +5,11 @@ The bag must hold /joint_states and /pik/base_pose (pik_node, same header stamps
 /trajectory/active_stance and /trajectory/joint_trajectory (trajectory_node) and
 /stabilizer/state (stabilizer_gate_node); the last execution in the bag (from the last
 active stance 0 on) is checked. Times are header stamps (s); stance k is reached at its
-active stance's stamp, and the transition k -> k + 1 runs from stance k's stamp to stance
-k + 1's. Positions are in the world frame (m), joints in rad.
+active stance's stamp (the last one when trajectory_node announced it again after waiting
+for its created contacts), and the transition k -> k + 1 runs from stance k's stamp to
+stance k + 1's: the trajectory's pace from the start, then, after a wait, its end sample
+until stance k + 1 is reached (command_times). Positions are in the world frame (m),
+joints in rad.
 
 Checks (one table each):
 - contacts: every contact's spot (forward kinematics of the joint states and base pose)
@@ -98,9 +101,8 @@ class Execution:
     joint_names (J,): /joint_states order; times (N,) s; joints (N, J) rad; q (N, nq):
     Pinocchio configurations (base pose of the same stamp); stances: library Stance per
     active stance (witness q unset) and stamps (K,) s; trajectory: (times (M,) s from
-    its start, positions (M, J'), velocities (M, J'), joint names) or None, and its start
-    trajectory_start (s, its stamp; None without one); stabilizer: (times (L,) s, enabled
-    (L,) bool, blend (L,))."""
+    its start, positions (M, J'), velocities (M, J'), joint names) or None; stabilizer:
+    (times (L,) s, enabled (L,) bool, blend (L,))."""
 
     joint_names: list
     times: np.ndarray
@@ -109,7 +111,6 @@ class Execution:
     stances: list
     stamps: np.ndarray
     trajectory: tuple | None
-    trajectory_start: float | None
     stabilizer: tuple
 
     @cached_property
@@ -154,7 +155,7 @@ def read_execution(bag, robot, scene) -> Execution:
 
     from .bag import read_messages
 
-    states, bases, stances, trajectory, stabilizer = [], {}, [], None, []
+    states, bases, stances, indices, trajectory, stabilizer = [], {}, [], [], None, []
     for topic, _, msg in read_messages(bag, [JOINT_STATES, BASE_POSE, ACTIVE_STANCE,
                                              JOINT_TRAJECTORY, STABILIZER_STATE]):
         if topic == JOINT_STATES:
@@ -166,7 +167,11 @@ def read_execution(bag, robot, scene) -> Execution:
                 [p.x, p.y, p.z, o.x, o.y, o.z, o.w]
         elif topic == ACTIVE_STANCE:
             if msg.index == 0:
-                stances = []
+                stances, indices = [], []
+            if indices and indices[-1] == msg.index:   # announced again: reached later
+                stances.pop()
+                indices.pop()
+            indices.append(msg.index)
             stances.append((stamp_seconds(msg.header),
                             tuple(contact_from_frame(c, scene) for c in msg.contacts)))
         elif topic == JOINT_TRAJECTORY:
@@ -190,7 +195,6 @@ def read_execution(bag, robot, scene) -> Execution:
                      [Stance(contacts, None) for _, contacts in stances],
                      np.array([stamp for stamp, _ in stances]),
                      None if trajectory is None else _trajectory_arrays(trajectory),
-                     None if trajectory is None else stamp_seconds(trajectory.header),
                      stabilizer)
 
 
@@ -382,8 +386,10 @@ def tracking_delays(run: Execution, indices) -> np.ndarray:
     """How late (s) the joint states at indices follow the commanded trajectory: per
     sample, the smallest multiple of DELAY_STEP in [0, MAX_TRACKING_DELAY] whose commanded
     joints (C1 Hermite interpolation of the waypoints) are within DELAY_TOLERANCE (max over
-    joints, rad) of the closest ones. Zeros without a trajectory. A pik_node pause gives the
-    trajectory a new start: samples before it are measured against that new time base."""
+    joints, rad) of the closest ones. Zeros without a trajectory. Commands come from command_times.
+    A pik_node pause mid-transition shifts trajectory_node's time base but not the stamps
+    it already announced: samples up to the next stance announced are measured ahead of
+    their command by the pause."""
     from scipy.interpolate import CubicHermiteSpline
 
     indices = np.asarray(indices, dtype=int)
@@ -396,12 +402,26 @@ def tracking_delays(run: Execution, indices) -> np.ndarray:
     delays = np.arange(0.0, MAX_TRACKING_DELAY + 0.5 * DELAY_STEP, DELAY_STEP)
     for begin in range(0, len(indices), DELAY_CHUNK):   # (S, D, J) arrays of bounded size
         chunk = indices[begin:begin + DELAY_CHUNK]
-        when = run.times[chunk, None] - run.trajectory_start - delays         # (S, D)
+        when = command_times(run.stamps, times, run.times[chunk, None] - delays)  # (S, D)
         errors = np.abs(commanded(np.clip(when, times[0], times[-1]))
                         - run.joints[chunk][:, None, columns]).max(axis=2)   # (S, D)
         close = errors <= errors.min(axis=1, keepdims=True) + DELAY_TOLERANCE
         found[begin:begin + DELAY_CHUNK] = delays[np.argmax(close, axis=1)]
     return found
+
+
+def command_times(stamps, waypoint_times, wall) -> np.ndarray:
+    """Trajectory time (s from its start) commanded at wall times (s; any shape), given
+    when each stance was reached (stamps (K,) s) and the JointTrajectory's waypoint times
+    (M,): from stance j's stamp, transition j at the trajectory's pace, then its end
+    sample until stance j + 1's stamp (trajectory_node waited there for created
+    contacts). Without a wait this is wall - start. Stance samples: every
+    (M - 1) / (K - 1)-th waypoint."""
+    per_transition = (len(waypoint_times) - 1) // max(len(stamps) - 1, 1)
+    boundaries = waypoint_times[::per_transition][:len(stamps)]
+    j = np.clip(np.searchsorted(stamps, wall, side="right") - 1, 0, len(stamps) - 1)
+    ends = boundaries[np.minimum(j + 1, len(boundaries) - 1)]
+    return np.minimum(boundaries[j] + (np.asarray(wall) - stamps[j]), ends)
 
 
 def equilibrium_samples(times, stamps) -> np.ndarray:

@@ -15,7 +15,18 @@ URDF speed limits; or time_optimal, also under `acceleration_limit`), then execu
   CoM and posture are the forward kinematics of the trajectory sampled at the current
   time, streamed on /pik/tasks/<name>/target as a teleoperator would;
 - the active stance goes out when the transition into it starts (stance 0: at the start),
-  stamped with when that transition ends (the stabilizer_gate_node contract).
+  stamped with when that transition ends (the stabilizer_gate_node contract);
+- contacts are created only where the robot is (stance.execution.tracking.ArrivalGate): at
+  the end of a transition that creates contacts, the clock holds (the end sample streamed
+  again) until pik_node's status shows each created contact's frame within
+  `arrival_tolerance` m and `arrival_angle_tolerance` rad of its exact target; only then
+  does the next stack hold it at priority 0. Unloaded, the frames are there on time and
+  nothing waits; when pik_node lags, holding a contact at its target from centimetres away
+  would drag it along its surface. A wait shifts the time base: the stance goes out again,
+  stamped when it was reached, with `executing: stance k reached after waiting ...`, and
+  the JointTrajectory goes out again with its start shifted. A wait beyond
+  `arrival_timeout` s ends the plan in `failed: execution stopped: ...` naming the contacts
+  and how far off they are (pik_node then holds them at their targets).
 
 pik_node lost during execution (PikWatch on /pik/status: silent for `pik_status_timeout`
 s, or its cycle counter went back, i.e. a new process): streaming pauses at the current
@@ -46,14 +57,16 @@ Topics and services (QoS in parentheses):
   sub  /contact_planner/plan         stance_msgs/StancePlan (reliable, transient local)
   pub  /trajectory/joint_trajectory  trajectory_msgs/JointTrajectory (reliable, transient
                                      local), header.stamp = execution start
-  pub  /trajectory/active_stance     stance_msgs/ContactStance (reliable, keep last 10)
+  pub  /trajectory/active_stance     stance_msgs/ContactStance (reliable, keep last 10); a
+                                     stance reached after a wait goes out again, stamped
+                                     when it was reached
   pub  /trajectory/status            std_msgs/String "<state>: <message>", state idle |
                                      interpolating | executing | done | failed (reliable,
                                      transient local)
   pub  /pik/tasks/<name>/target      PoseStamped | PointStamped (com) | JointState (posture)
   sub  /pik/status                   stance_msgs/SolverStatus (best effort, keep last 1),
-                                     pik_node's liveness (PikWatch, a private node
-                                     <name>_pik_watch the worker polls)
+                                     pik_node's liveness and its tasks' frames (PikWatch,
+                                     a private node <name>_pik_watch the worker polls)
   cli  /pik/set_configuration, /pik/set_stack: a call waits at most `service_timeout` s
                                      for the service and its answer together, the
                                      request sent again each RESEND_PERIOD s
@@ -68,9 +81,11 @@ import threading
 import time
 import traceback
 
+import numpy as np
 import pinocchio as pin
 from contact_planner_node.conversions import actuated_q_index
 from geometry_msgs.msg import PointStamped, PoseStamped
+from pik_node.conversions import se3_from_pose_msg
 from pik_node.node import (LATCHED, RELIABLE, TARGET_TYPES, fill_pose_msg, float_parameter,
                            run_node)
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
@@ -83,7 +98,9 @@ from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import InterpolationError, TransitionPlanner
 from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
-from stance.execution.tracking import GAINS, task_targets, transition_tasks
+from stance.execution.tracking import (ARRIVAL_TIMEOUT, ARRIVAL_TOLERANCE, GAINS,
+                                       ArrivalGate, created_contacts, task_targets,
+                                       transition_tasks)
 from stance.planning.collision import CollisionModel
 from stance.planning.verify import verify_plan
 from stance_msgs.msg import ContactStance, SolverStatus, StancePlan
@@ -142,6 +159,7 @@ class PikWatch:
         self._subscription = self._node.create_subscription(
             SolverStatus, PIK_STATUS_TOPIC, lambda _: None, LATEST)
         self._seen = -math.inf    # monotonic s when a status was last taken
+        self._newest = None       # that status
         self._cycles = 0          # of that status
         self._starts = 0          # cycle counter resets seen (new pik_node processes)
         self._armed = None        # (monotonic s, _starts) at arm(); None: not judged
@@ -157,7 +175,7 @@ class PikWatch:
         if taken is not None:
             if taken[0].cycles < self._cycles:
                 self._starts += 1
-            self._cycles, self._seen = taken[0].cycles, time.monotonic()
+            self._newest, self._cycles, self._seen = taken[0], taken[0].cycles, time.monotonic()
 
     def arm(self):
         """Judge from now on (pik_node has just answered)."""
@@ -177,6 +195,14 @@ class PikWatch:
             return "pik_node restarted"
         silent = time.monotonic() - max(self._seen, since)
         return f"pik_node silent for {silent:.2f} s" if silent > self.silence else None
+
+    def frames(self, names) -> dict:
+        """{task name: achieved frame pose (pin.SE3, world)} of the named frame tasks in
+        the newest status taken (lost() takes it); names it lacks are left out."""
+        if self._newest is None:
+            return {}
+        return {task.name: se3_from_pose_msg(task.current) for task in self._newest.tasks
+                if task.name in names}
 
     def back(self, lost_at: float) -> bool | None:
         """Once armed and lost at monotonic `lost_at`: True when a new process publishes,
@@ -207,6 +233,9 @@ class TrajectoryNode(Node):
         self.period = 1.0 / get("rate").value
         self.service_timeout = get("service_timeout").value
         self.execute_latched_plan = get("execute_latched_plan").value
+        self.arrival_tolerance = (get("arrival_tolerance").value,
+                                  get("arrival_angle_tolerance").value)
+        self.arrival_timeout = get("arrival_timeout").value
         self._started = self.get_clock().now()
         self.pik_restart_timeout = get("pik_restart_timeout").value
         self._pik = PikWatch(self, get("pik_status_timeout").value)
@@ -262,6 +291,14 @@ class TrajectoryNode(Node):
         self.declare_parameter("pik_restart_timeout", 30.0, float_parameter(
             "wait for a lost pik_node to publish again before the execution stops (s; 0: "
             "stop at once)", 0.0, 600.0))
+        self.declare_parameter("arrival_tolerance", ARRIVAL_TOLERANCE[0], float_parameter(
+            "a created contact's frame this close to its target counts as arrived (m)",
+            1e-5, 0.1))
+        self.declare_parameter("arrival_angle_tolerance", ARRIVAL_TOLERANCE[1], float_parameter(
+            "same for its orientation (rad)", 1e-4, 1.0))
+        self.declare_parameter("arrival_timeout", ARRIVAL_TIMEOUT, float_parameter(
+            "wait at a transition's end for its created contacts at most this long before "
+            "the execution stops (s)", 0.0, 600.0))
         self.declare_parameter("execute_latched_plan", False, ParameterDescriptor(
             description="also execute a plan stamped before this node started (the latched "
                         "last plan)", read_only=True))
@@ -355,7 +392,8 @@ class TrajectoryNode(Node):
     def _execute(self, msg, plan, scene, planner, path, trajectory):
         """Stream the timed plan to pik_node (module docstring); returns when it is done, or
         at the end of the current transition when a newer plan is pending."""
-        boundaries = trajectory.times[path.stance_samples]   # s: when each stance is reached
+        # s: when each stance is reached (the last one: the end, where the clock stops)
+        boundaries = np.minimum(trajectory.times[path.stance_samples], trajectory.duration)
         self._call(self.set_configuration_client, configuration_request(self.robot,
                                                                         plan.stances[0].q))
         self._pik.arm()
@@ -365,7 +403,7 @@ class TrajectoryNode(Node):
             self._pik.disarm()
 
     def _stream_plan(self, msg, plan, scene, planner, trajectory, boundaries):
-        stack, held = self._transition(scene, planner, plan, 0)
+        stack, held, gate = self._transition(scene, planner, plan, 0)
         # pik_node holds the first stack before the clock starts: a service round trip
         # inside the clock (0.1-0.3 s under load) left the robot that far behind at once
         self._call(self.set_stack_client, stack_request(stack))
@@ -391,23 +429,60 @@ class TrajectoryNode(Node):
                 began, next_tick = time.monotonic() - t, time.monotonic()
                 start = self.get_clock().now() - Duration(seconds=t)
                 self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
+                gate = self._gate(gate.targets)   # waiting starts over with the new process
                 continue
-            if t >= trajectory.duration:
-                self._status("done", f"reached stance {len(plan.stances) - 1} of scene "
-                                     f"{plan.scene!r}")
-                return
-            next_tick += self.period
-            time.sleep(max(next_tick - time.monotonic(), 0.0))
-            t = min(time.monotonic() - began, trajectory.duration)
-            while transition < last and t >= boundaries[transition + 1]:
+            waiting = False
+            while t >= boundaries[transition + 1]:
+                end = boundaries[transition + 1]
+                if not self._arrived(gate, transition):
+                    waiting = True
+                    break
+                if gate.waiting_since is not None:
+                    start = self.get_clock().now() - Duration(seconds=end)
+                    self._reached_after_waiting(msg, transition, gate, trajectory, start, end)
+                if transition == last:
+                    self._status("done", f"reached stance {len(plan.stances) - 1} of scene "
+                                         f"{plan.scene!r}")
+                    return
                 if self._has_pending():
-                    self._stream(trajectory.sample(boundaries[transition + 1])[0], stack, held)
+                    self._stream(trajectory.sample(end)[0], stack, held)
                     self._status("executing", f"superseded by a newer plan at stance "
                                               f"{transition + 1}")
                     return
                 transition += 1
-                stack, held = self._transition(scene, planner, plan, transition)
+                stack, held, gate = self._transition(scene, planner, plan, transition)
                 self._publish_active(msg, transition + 1, start, boundaries[transition + 1])
+            next_tick += self.period
+            time.sleep(max(next_tick - time.monotonic(), 0.0))
+            if waiting:   # the clock holds at the transition's end
+                began = time.monotonic() - boundaries[transition + 1]
+            t = min(time.monotonic() - began, trajectory.duration)
+
+    def _arrived(self, gate, transition) -> bool:
+        """Whether the contacts transition `transition` creates are made (pik_node's newest
+        status); ExecutionError once they have been awaited arrival_timeout s."""
+        now = time.monotonic()
+        was_waiting = gate.waiting_since is not None
+        if gate.update(self._pik.frames(gate.targets), now):
+            return True
+        if not was_waiting:
+            self.get_logger().info(f"waiting at stance {transition + 1} for its contacts: "
+                                   f"{gate.describe_late()}")
+        elif gate.timed_out(now):
+            raise ExecutionError(f"stance {transition + 1} not reached: after "
+                                 f"{gate.waited(now):.2f} s, {gate.describe_late()} (arrival "
+                                 f"tolerance {1e3 * gate.tolerance[0]:g} mm, "
+                                 f"{gate.tolerance[1]:g} rad)")
+        return False
+
+    def _reached_after_waiting(self, msg, transition, gate, trajectory, start, end):
+        """Stance transition + 1, reached after a wait: announce it again stamped now, and
+        the JointTrajectory with its start shifted by the wait (time base: `start`)."""
+        self._publish_active(msg, transition + 1, start, end)
+        self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
+        self._status("executing", f"stance {transition + 1} reached after waiting "
+                                  f"{gate.waited(time.monotonic()):.2f} s for its contacts "
+                                  f"({gate.describe_late(gate.late_when_due)} when due)")
 
     def _recover(self, reason, transition, t, trajectory, stack, sent):
         """Streaming paused at sample time t (s): wait up to pik_restart_timeout s for
@@ -440,9 +515,13 @@ class TrajectoryNode(Node):
         return stack
 
     def _transition(self, scene, planner, plan, transition):
-        """(stack, held contacts' frame targets by spot) of transition `transition` (stance
-        i -> i + 1)."""
-        return transition_tasks(scene, planner, plan, transition, self.gains)
+        """(stack, held contacts' frame targets by spot, ArrivalGate of the contacts it
+        creates) of transition `transition` (stance i -> i + 1)."""
+        stack, held = transition_tasks(scene, planner, plan, transition, self.gains)
+        return stack, held, self._gate(created_contacts(scene, planner, plan, transition))
+
+    def _gate(self, targets) -> ArrivalGate:
+        return ArrivalGate(targets, self.arrival_tolerance, self.arrival_timeout)
 
     def _stream(self, q, stack, held):
         """Publish every task's target at configuration q (nq) (tracking.task_targets)."""

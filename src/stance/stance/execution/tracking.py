@@ -89,6 +89,7 @@ class ArrivalGate:
         self.targets, self.tolerance, self.timeout = targets, tolerance, timeout
         self.waiting_since = None   # s (the caller's clock) of the first update not arrived
         self.late = {}              # {spot: (m, rad)} off target at the last update
+        self.late_when_due = {}     # the same at the first update (the transition's end)
 
     def update(self, poses: dict, now: float) -> bool:
         """True when every created contact's frame (poses: {spot: pin.SE3}; a missing spot
@@ -104,7 +105,7 @@ class ArrivalGate:
             if offset[0] > self.tolerance[0] or offset[1] > self.tolerance[1]:
                 self.late[spot] = offset
         if self.late and self.waiting_since is None:
-            self.waiting_since = now
+            self.waiting_since, self.late_when_due = now, dict(self.late)
         return not self.late
 
     def waited(self, now: float) -> float:
@@ -114,10 +115,11 @@ class ArrivalGate:
     def timed_out(self, now: float) -> bool:
         return self.waited(now) > self.timeout
 
-    def describe_late(self) -> str:
-        """'spot 12.3 mm, 0.045 rad off; ...' for the contacts not arrived."""
+    def describe_late(self, late: dict | None = None) -> str:
+        """'spot 12.3 mm, 0.045 rad off; ...' for `late` (default: the last update's)."""
+        late = self.late if late is None else late
         return "; ".join(f"{spot} {1e3 * position:.1f} mm, {angle:.3f} rad off"
-                         for spot, (position, angle) in sorted(self.late.items()))
+                         for spot, (position, angle) in sorted(late.items()))
 
 
 def task_targets(model, data, stack, held, q) -> dict:
@@ -167,7 +169,7 @@ def track(solver, scene, planner, plan, path, trajectory, rate: float = 500.0,
     gains = GAINS if gains is None else gains
     model = solver.robot.model
     data, scratch = pin.Data(model), pin.Data(model)
-    boundaries = trajectory.times[path.stance_samples]
+    boundaries = np.minimum(trajectory.times[path.stance_samples], trajectory.duration)
     last = len(plan.stances) - 2
     refresh = max(1, int(round(rate / target_rate)))
     times, transitions, held_error, velocity_scale, holds = [], [], [], [], []
