@@ -247,11 +247,14 @@ def spot_positions(robot, scene, q) -> dict:
 
 def check_contacts(run: Execution, scene, positions) -> Check:
     """Spot positions (spot_positions of run.q) against the targets of the contacts held
-    at the instant each joint state tracks (tracking_delays)."""
+    at the instant each joint state tracks (tracking_delays), until the command releases
+    them: a state stamped after the transition that moves the spot started is not judged,
+    even when its joints as a whole track an earlier instant (the lag is the slowest
+    task's, the posture's; the spot's own task follows its lift at once)."""
     check = Check("contacts", ("spot", "surface", "stances", "samples", "max error (mm)"))
     tracked = run.tracked_times
     for contact, first, last, start, end in held_intervals(run.stances, run.stamps):
-        inside = (tracked >= start) & (tracked <= end)
+        inside = (tracked >= start) & (run.times <= end)
         target = contact.spot_target(scene.surfaces[contact.surface]).translation
         errors = np.linalg.norm(positions[contact.spot][inside] - target, axis=1)
         worst = float(errors.max()) if inside.any() else math.nan
