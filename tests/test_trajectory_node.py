@@ -422,6 +422,7 @@ def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(process
 @pytest.mark.parametrize("parameter, reason", [
     ("timing:=fastest", "timing"),
     ("rate:=0.0", "rate"),
+    ("arrival_tolerance:=-0.001", "arrival_tolerance"),
     ("robot:=no_such_robot", "unknown example-robot-data robot"),
 ])
 def test_bad_startup_parameter_is_refused_with_its_reason(processes, parameter, reason):
