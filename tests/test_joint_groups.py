@@ -176,8 +176,8 @@ def test_the_cones_bind_and_without_a_strategy_are_left(talos, groups):
     held; no strategy lets the same runs out of the cones."""
     def closest(strategy, steps):
         return min(model.domain.signed_distance(swing_twist(model.rotation(q))[0])
-                   for seed in range(3) for q, _ in talos_group_run(talos, groups, seed, False, strategy,
-                                                        steps)
+                   for seed in range(3)
+                   for q, _ in talos_group_run(talos, groups, seed, False, strategy, steps)
                    for model in groups)
 
     assert -SWING_TOLERANCE <= closest("progressive", 40) < groups[0].thickness

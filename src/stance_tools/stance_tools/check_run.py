@@ -389,10 +389,10 @@ def tracking_delays(run: Execution, indices) -> np.ndarray:
     """How late (s) the joint states at indices follow the commanded trajectory: per
     sample, the smallest multiple of DELAY_STEP in [0, MAX_TRACKING_DELAY] whose commanded
     joints (C1 Hermite interpolation of the waypoints) are within DELAY_TOLERANCE (max over
-    joints, rad) of the closest ones. Zeros without a trajectory. Commands come from command_times.
-    A pik_node pause mid-transition shifts trajectory_node's time base but not the stamps
-    it already announced: samples up to the next stance announced are measured ahead of
-    their command by the pause."""
+    joints, rad) of the closest ones. Zeros without a trajectory. Commands come from
+    command_times. A pik_node pause mid-transition shifts trajectory_node's time base but
+    not the stamps it already announced: samples up to the next stance announced are
+    measured ahead of their command by the pause."""
     from scipy.interpolate import CubicHermiteSpline
 
     indices = np.asarray(indices, dtype=int)

@@ -107,6 +107,11 @@ class Trajectory:
     def duration(self) -> float:
         return float(self.starts[-1] + self.laws[-1].duration)
 
+    def times_of(self, samples) -> np.ndarray:
+        """Time (s) of each input sample index in `samples`, at most the duration (the
+        summed laws may put the last sample a rounding error past it)."""
+        return np.minimum(self.times[np.asarray(samples, dtype=int)], self.duration)
+
     def sample(self, t: float):
         """(q (nq), v (nv)) at time t (s), clamped to [0, duration]."""
         t = min(max(t, 0.0), self.duration)
