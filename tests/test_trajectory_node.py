@@ -24,7 +24,8 @@ from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance.execution.interpolation import TransitionPlanner
 from stance.execution.timing import time_optimal_trajectory
-from stance.execution.tracking import ARRIVAL_TOLERANCE, created_contacts
+from stance.execution.tracking import (ARRIVAL_COM_TOLERANCE, ARRIVAL_TOLERANCE, GAINS,
+                                       transition_tasks, witness_com)
 from stance.planning.collision import CollisionModel
 from stance.planning.contacts import Plan
 from stance_msgs.msg import ContactStance, SolverStatus, StancePlan
@@ -337,50 +338,63 @@ def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat_st
     assert node.poll() is None
 
 
-def test_a_lagging_pik_node_makes_the_clock_wait_for_each_created_contact(processes,
-                                                                          flat_steps_plan):
-    """pik_node made to lag (contact gain 0.02: the soles trail their path as on a loaded
-    machine) on four flat_steps transitions: each stance whose transition lands a sole is
-    reached late, so the clock waits; the stance is announced again stamped when it was
-    reached, the JointTrajectory again with its start shifted, and pik_node's own status
-    shows the sole off its contact when due and on it when reached. Its own pair of nodes
-    in another DDS domain."""
+def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(processes,
+                                                                           flat_steps_plan):
+    """pik_node made to lag (contact and CoM gains 0.02: soles and CoM trail their paths as
+    on a loaded machine) on four flat_steps transitions: each stance is reached late, so
+    the clock waits at every one (for the landing sole, for the CoM); the stance is
+    announced again stamped when it was reached, the JointTrajectory again with its start
+    shifted, and pik_node's own status shows what was late off target when due and every
+    created contact and the CoM on target when reached. Its own pair of nodes in another
+    DDS domain."""
     robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:5])
     planner = TransitionPlanner(robot, scene, CollisionModel(robot, scene), steps=STEPS)
-    created = {index + 1: created_contacts(scene, planner, short, index)
+    created = {index + 1: transition_tasks(scene, planner, short, index, GAINS)[2]
                for index in range(len(short.stances) - 1)}
-    landings = sorted(k for k, targets in created.items() if targets)
-    assert len(landings) == 2
+    assert sum(bool(targets) for targets in created.values()) == 2
+    data = robot.model.createData()
+    coms = {k: witness_com(robot.model, data, short.stances[k]) for k in created}
     domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
     processes.start("pik_node", name="pik_node", env=domain)
     processes.start("trajectory_node", "--ros-args", "-p", "contact_gain:=0.02", "-p",
-                    f"samples_per_transition:={STEPS}", name="trajectory_node", env=domain)
-    probe = TrajectoryProbe("arrival_probe", int(domain["ROS_DOMAIN_ID"]),
-                            pik_frames={spot for targets in created.values() for spot in targets})
+                    "com_gain:=0.02", "-p", f"samples_per_transition:={STEPS}",
+                    name="trajectory_node", env=domain)
+    frames = {spot for targets in created.values() for spot in targets} | {"com"}
+    probe = TrajectoryProbe("arrival_probe", int(domain["ROS_DOMAIN_ID"]), pik_frames=frames)
     try:
         wait_until(lambda: probe.frame_log, 120, what="pik_node's status")
         counts = probe.counts()
         probe.publish_plan(plan_msg(robot, scene, short))
-        statuses = probe.wait_status(counts, "done", 90)
+        statuses = probe.wait_status(counts, "done", 120)
         trajectories, stances, _ = probe.since(counts)
     finally:
         probe.close()
-    waits = [status for status in statuses if "reached after waiting" in status]
-    assert [int(status.split()[2]) for status in waits] == landings, statuses
+    waited = {int(status.split()[2]): status for status in statuses
+              if "reached after waiting" in status}
+    assert sorted(waited) == sorted(created), statuses
     indices = [msg.index for _, msg in stances]
-    assert indices == sorted(list(range(len(short.stances))) + landings)
-    assert len(trajectories) == 1 + len(landings)
+    assert indices == sorted(list(range(len(short.stances))) + list(waited))
+    assert len(trajectories) == 1 + len(waited)
     starts = [stamp_seconds(msg) for msg in trajectories]
     assert np.all(np.diff(starts) > 0.0)   # each wait shifts the time base
-    for k in landings:
+    tolerance = {**{spot: ARRIVAL_TOLERANCE[0] for spot in frames}, "com": ARRIVAL_COM_TOLERANCE}
+
+    def offsets(k, stamp):
+        """{created spot or 'com': m off its arrival target} in pik_node's status at stamp."""
+        poses = probe.frames_at(stamp)
+        return {"com": np.linalg.norm(poses["com"].translation[:2] - coms[k]),
+                **{spot: np.linalg.norm(poses[spot].translation - target.translation)
+                   for spot, target in created[k].items()}}
+
+    for k, status in waited.items():
         (due, reached) = [stamp_seconds(msg) for _, msg in stances if msg.index == k]
         assert reached > due
-        for spot, target in created[k].items():
-            def offset(frames):
-                return np.linalg.norm(frames[spot].translation - target.translation)
-            assert offset(probe.frames_at(due)) > ARRIVAL_TOLERANCE[0]
-            assert offset(probe.frames_at(reached)) <= ARRIVAL_TOLERANCE[0] + 1e-4
+        late = status[status.rindex("(") + 1:]      # '(com 17.9 mm off; left_sole ...'
+        assert set(created[k]) | {"com"} == {part.split()[0] for part in late.split("; ")}
+        assert all(offset > tolerance[name] for name, offset in offsets(k, due).items())
+        assert all(offset <= tolerance[name] + 1e-4
+                   for name, offset in offsets(k, reached).items()), status
 
 
 def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(processes,

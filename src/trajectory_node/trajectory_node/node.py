@@ -16,17 +16,20 @@ URDF speed limits; or time_optimal, also under `acceleration_limit`), then execu
   time, streamed on /pik/tasks/<name>/target as a teleoperator would;
 - the active stance goes out when the transition into it starts (stance 0: at the start),
   stamped with when that transition ends (the stabilizer_gate_node contract);
-- contacts are created only where the robot is (stance.execution.tracking.ArrivalGate): at
-  the end of a transition that creates contacts, the clock holds (the end sample streamed
-  again) until pik_node's status shows each created contact's frame within
-  `arrival_tolerance` m and `arrival_angle_tolerance` rad of its exact target; only then
-  does the next stack hold it at priority 0. Unloaded, the frames are there on time and
-  nothing waits; when pik_node lags, holding a contact at its target from centimetres away
-  would drag it along its surface. A wait shifts the time base: the stance goes out again,
-  stamped when it was reached, with `executing: stance k reached after waiting ...`, and
-  the JointTrajectory goes out again with its start shifted. A wait beyond
-  `arrival_timeout` s ends the plan in `failed: execution stopped: ...` naming the contacts
-  and how far off they are (pik_node then holds them at their targets).
+- a transition starts only once the robot is at the stance before it
+  (stance.execution.tracking.ArrivalGate): at the end of each transition the clock holds
+  (the end sample streamed again) until pik_node's status shows each contact it creates
+  with its frame within `arrival_tolerance` m and `arrival_angle_tolerance` rad of its
+  exact target, and the CoM (x, y) within `arrival_com_tolerance` m of the stance witness's;
+  only then does the next stack hold the created contacts at priority 0 and may the next
+  transition release one. Unloaded, the robot is there on time and nothing waits; when
+  pik_node lags, holding a contact at its target from centimetres away would drag it along
+  its surface, and lifting a foot before the CoM is over the other would unbalance the
+  robot. A wait shifts the time base: the stance goes out again, stamped when it was
+  reached, with `executing: stance k reached after waiting ...`, and the JointTrajectory
+  goes out again with its start shifted. A wait beyond `arrival_timeout` s ends the plan
+  in `failed: execution stopped: ...` naming what is off and by how much (pik_node then
+  holds the created contacts at their targets).
 
 pik_node lost during execution (PikWatch on /pik/status: silent for `pik_status_timeout`
 s, or its cycle counter went back, i.e. a new process): streaming pauses at the current
@@ -48,8 +51,8 @@ another is interpolated replaces it. Every plan is verified first (stance.planni
 what `stance check-plan` runs: contacts, collisions, joint limits, static equilibrium, one
 contact change per stance); one that fails is rejected with its first failures. A plan that
 cannot be converted, verified, interpolated or executed is reported (status `failed`, log)
-and the node waits for the next one; pik_node then holds its last targets. A plan stamped before the node started (the latched last
-plan, found at start-up) is not executed unless `execute_latched_plan` is true: a node
+and the node waits for the next one; pik_node then holds its last targets. A plan stamped
+before the node started (the latched last plan, found at start-up) is not executed unless `execute_latched_plan` is true: a node
 restarted by `stance graph` must not replay the last plan from its first witness; the
 status says so. A plan equal to the last one received (header stamp included) is ignored.
 
@@ -98,9 +101,9 @@ from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import InterpolationError, TransitionPlanner
 from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
-from stance.execution.tracking import (ARRIVAL_TIMEOUT, ARRIVAL_TOLERANCE, GAINS,
-                                       ArrivalGate, created_contacts, task_targets,
-                                       transition_tasks)
+from stance.execution.tracking import (ARRIVAL_COM_TOLERANCE, ARRIVAL_TIMEOUT,
+                                       ARRIVAL_TOLERANCE, GAINS, ArrivalGate, task_targets,
+                                       transition_tasks, witness_com)
 from stance.planning.collision import CollisionModel
 from stance.planning.verify import verify_plan
 from stance_msgs.msg import ContactStance, SolverStatus, StancePlan
@@ -204,6 +207,17 @@ class PikWatch:
         return {task.name: se3_from_pose_msg(task.current) for task in self._newest.tasks
                 if task.name in names}
 
+    def com(self) -> np.ndarray | None:
+        """Achieved CoM (3, world, m) of the 'com' task in the newest status taken, None
+        without one."""
+        if self._newest is None:
+            return None
+        for task in self._newest.tasks:
+            if task.name == "com":
+                position = task.current.position
+                return np.array([position.x, position.y, position.z])
+        return None
+
     def back(self, lost_at: float) -> bool | None:
         """Once armed and lost at monotonic `lost_at`: True when a new process publishes,
         False when the same one publishes again, None while neither has."""
@@ -235,6 +249,7 @@ class TrajectoryNode(Node):
         self.execute_latched_plan = get("execute_latched_plan").value
         self.arrival_tolerance = (get("arrival_tolerance").value,
                                   get("arrival_angle_tolerance").value)
+        self.arrival_com_tolerance = get("arrival_com_tolerance").value
         self.arrival_timeout = get("arrival_timeout").value
         self._started = self.get_clock().now()
         self.pik_restart_timeout = get("pik_restart_timeout").value
@@ -296,9 +311,12 @@ class TrajectoryNode(Node):
             1e-5, 0.1))
         self.declare_parameter("arrival_angle_tolerance", ARRIVAL_TOLERANCE[1], float_parameter(
             "same for its orientation (rad)", 1e-4, 1.0))
+        self.declare_parameter("arrival_com_tolerance", ARRIVAL_COM_TOLERANCE, float_parameter(
+            "the CoM (x, y) this close to the stance witness's counts as arrived (m)",
+            1e-4, 0.1))
         self.declare_parameter("arrival_timeout", ARRIVAL_TIMEOUT, float_parameter(
-            "wait at a transition's end for its created contacts at most this long before "
-            "the execution stops (s)", 0.0, 600.0))
+            "wait at a transition's end for its created contacts and the CoM at most this "
+            "long before the execution stops (s)", 0.0, 600.0))
         self.declare_parameter("execute_latched_plan", False, ParameterDescriptor(
             description="also execute a plan stamped before this node started (the latched "
                         "last plan)", read_only=True))
@@ -393,7 +411,7 @@ class TrajectoryNode(Node):
         """Stream the timed plan to pik_node (module docstring); returns when it is done, or
         at the end of the current transition when a newer plan is pending."""
         # s: when each stance is reached (the last one: the end, where the clock stops)
-        boundaries = np.minimum(trajectory.times[path.stance_samples], trajectory.duration)
+        boundaries = trajectory.times_of(path.stance_samples)
         self._call(self.set_configuration_client, configuration_request(self.robot,
                                                                         plan.stances[0].q))
         self._pik.arm()
@@ -429,7 +447,8 @@ class TrajectoryNode(Node):
                 began, next_tick = time.monotonic() - t, time.monotonic()
                 start = self.get_clock().now() - Duration(seconds=t)
                 self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
-                gate = self._gate(gate.targets)   # waiting starts over with the new process
+                # waiting starts over with the new process
+                gate = self._gate(gate.targets, gate.com)
                 continue
             waiting = False
             while t >= boundaries[transition + 1]:
@@ -459,15 +478,16 @@ class TrajectoryNode(Node):
             t = min(time.monotonic() - began, trajectory.duration)
 
     def _arrived(self, gate, transition) -> bool:
-        """Whether the contacts transition `transition` creates are made (pik_node's newest
-        status); ExecutionError once they have been awaited arrival_timeout s."""
+        """Whether the robot is at stance transition + 1 (pik_node's newest status): the
+        contacts transition `transition` creates made, the CoM over the witness's;
+        ExecutionError once it has been awaited arrival_timeout s."""
         now = time.monotonic()
         was_waiting = gate.waiting_since is not None
-        if gate.update(self._pik.frames(gate.targets), now):
+        if gate.update(self._pik.frames(gate.targets), now, self._pik.com()):
             return True
         if not was_waiting:
-            self.get_logger().info(f"waiting at stance {transition + 1} for its contacts: "
-                                   f"{gate.describe_late()}")
+            self.get_logger().info(f"waiting at stance {transition + 1} for the robot to "
+                                   f"arrive: {gate.describe_late()}")
         elif gate.timed_out(now):
             raise ExecutionError(f"stance {transition + 1} not reached: after "
                                  f"{gate.waited(now):.2f} s, {gate.describe_late()} (arrival "
@@ -481,8 +501,8 @@ class TrajectoryNode(Node):
         self._publish_active(msg, transition + 1, start, end)
         self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
         self._status("executing", f"stance {transition + 1} reached after waiting "
-                                  f"{gate.waited(time.monotonic()):.2f} s for its contacts "
-                                  f"({gate.describe_late(gate.late_when_due)} when due)")
+                                  f"{gate.waited(time.monotonic()):.2f} s for the robot to "
+                                  f"arrive ({gate.describe_late(gate.late_when_due)} when due)")
 
     def _recover(self, reason, transition, t, trajectory, stack, sent):
         """Streaming paused at sample time t (s): wait up to pik_restart_timeout s for
@@ -517,11 +537,13 @@ class TrajectoryNode(Node):
     def _transition(self, scene, planner, plan, transition):
         """(stack, held contacts' frame targets by spot, ArrivalGate of the contacts it
         creates) of transition `transition` (stance i -> i + 1)."""
-        stack, held = transition_tasks(scene, planner, plan, transition, self.gains)
-        return stack, held, self._gate(created_contacts(scene, planner, plan, transition))
+        stack, held, created = transition_tasks(scene, planner, plan, transition, self.gains)
+        com = witness_com(self.robot.model, self._fk_data, plan.stances[transition + 1])
+        return stack, held, self._gate(created, com)
 
-    def _gate(self, targets) -> ArrivalGate:
-        return ArrivalGate(targets, self.arrival_tolerance, self.arrival_timeout)
+    def _gate(self, targets, com) -> ArrivalGate:
+        return ArrivalGate(targets, self.arrival_tolerance, self.arrival_timeout, com,
+                           self.arrival_com_tolerance)
 
     def _stream(self, q, stack, held):
         """Publish every task's target at configuration q (nq) (tracking.task_targets)."""
