@@ -30,7 +30,7 @@ import sys
 
 from contact_planner_node.conversions import contact_from_msg
 from pik_node.conversions import se3_from_pose_msg
-from pik_node.node import LATCHED, RELIABLE, float_parameter, run_node
+from pik_node.node import LATCHED, RELIABLE, STREAM, float_parameter, run_node
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
@@ -60,7 +60,7 @@ class StabilizerGateNode(Node):
             ramp_time=get("ramp_time").value)
         self.transitions = []      # Transition of each accepted active stance, pruned
         self.plan_switches = None  # stance index -> planned SwitchEvent | None, last plan
-        self.state_pub = self.create_publisher(StabilizerState, STATE_TOPIC, RELIABLE)
+        self.state_pub = self.create_publisher(StabilizerState, STATE_TOPIC, STREAM)
         self.create_subscription(ContactStance, ACTIVE_STANCE_TOPIC, self._on_active_stance,
                                  RELIABLE)
         self.create_subscription(StancePlan, PLAN_TOPIC, self._on_plan, LATCHED)
