@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from stance_tools import check_run
-from stance_tools.bag import topic_counts
+from stance_tools.bag import read_messages, topic_counts
 from stance_tools.demo import PIPELINE_TOPICS
 
 PLOTS = ("contacts.png", "stabilizer.png", "joints.png", "com.png", "damping.png",
@@ -45,7 +45,10 @@ def test_report_folder_holds_bag_plots_plan_and_report(demo):
         assert (folder / name).stat().st_size > 10_000, name
     plan = json.loads((folder / "plan.json").read_text())
     assert plan["scene"] == "flat_steps"
-    assert counts["/trajectory/active_stance"] == len(plan["stances"])
+    # a stance reached late (the nodes starved under load) is announced again
+    again = [msg.data for _, _, msg in read_messages(folder / "bag", ["/trajectory/status"])
+             if msg.data.startswith("executing: stance ") and " reached " in msg.data]
+    assert counts["/trajectory/active_stance"] == len(plan["stances"]) + len(again)
     report = (folder / "report.md").read_text()
     assert f"| stances | {len(plan['stances'])} |" in report
     duration = float(re.search(r"\| execution duration \(trajectory\) \| ([0-9.]+) s", report)

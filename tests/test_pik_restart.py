@@ -13,8 +13,8 @@ import pytest
 from conftest import wait_until
 from stance.planning.contacts import Plan
 from test_graph import log_has, started_pids, write_graph
-from test_trajectory_node import (JOINT_TOLERANCE, STEPS, TrajectoryProbe, once_each,
-                                  plan_msg, stamp_seconds, waits)
+from test_trajectory_node import (JOINT_TOLERANCE, STEPS, TrajectoryProbe, assert_executed,
+                                  once_each, plan_msg, reannounced, stamp_seconds)
 
 KILL_AT_STANCE = 8  # pik_node is killed once stance KILL_AT_STANCE is announced (of 28)
 # pik_node restarted once, soon; the others are never restarted (a crash stays visible)
@@ -82,9 +82,9 @@ def test_restarted_pik_node_execution_resumes_to_the_last_witness(processes, tmp
         assert statuses[resumed].startswith("executing: pik_node restarted at transition")
         assert not any(s.startswith("failed:") for s in statuses), statuses
         # the joint trajectory went out again, its start shifted by the pause
-        # (and again after each wait for a late landing: waits())
+        # (and again for each stance reached late: reannounced())
         trajectories, stances, _ = probe.since(counts)
-        assert len(trajectories) == 2 + len(waits(statuses))
+        assert len(trajectories) == 2 + len(reannounced(statuses))
         pause = stamp_seconds(trajectories[-1]) - stamp_seconds(trajectories[0])
         assert pause > 1.0, pause  # pik_node's start-up at least
         assert [msg.index for _, msg in once_each(stances)] == list(range(len(plan.stances)))
@@ -125,7 +125,7 @@ def test_pik_node_not_back_in_time_stops_the_execution_and_the_node_lives_on(
         counts = probe.counts()
         probe.publish_plan(plan_msg(robot, scene, short))
         statuses = probe.wait_status(counts, "done", 60)
-        assert [s.split(":")[0] for s in statuses] == ["interpolating", "executing", "done"]
+        assert_executed(statuses)
         wait_until(lambda: probe.joint_error(robot, short.stances[-1].q) < JOINT_TOLERANCE,
                    20, what="pik_node's joints on the short plan's last witness")
         assert node.poll() is None

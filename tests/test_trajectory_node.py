@@ -12,10 +12,15 @@ import signal
 import threading
 import time
 
+from pathlib import Path
+
 import numpy as np
+import pinocchio as pin
 import pytest
+import yaml
 from conftest import wait_until
 from contact_planner_node.conversions import stance_plan_msg
+from geometry_msgs.msg import PoseStamped
 from helpers.probe import RELIABLE, BackgroundNode
 from pik_node.conversions import se3_from_pose_msg
 from pik_node.node import LATCHED
@@ -23,7 +28,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance.execution.interpolation import TransitionPlanner
-from stance.execution.timing import time_optimal_trajectory
+from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
 from stance.execution.tracking import (ARRIVAL_COM_TOLERANCE, ARRIVAL_TOLERANCE, GAINS,
                                        transition_tasks, witness_com)
 from stance.planning.collision import CollisionModel
@@ -33,7 +38,7 @@ from stance_tools.check_run import command_times
 from stance_tools.processes import ProcessGroup
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
-from trajectory_node.node import STATUS_HISTORY
+from trajectory_node.node import MAX_TICK_ADVANCE, STATUS_HISTORY
 
 STEPS = 10               # samples_per_transition
 JOINT_TOLERANCE = 0.05   # rad: pik_node's joints against the plan's last witness
@@ -52,9 +57,10 @@ HISTORY = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
 class TrajectoryProbe(BackgroundNode):
     """Publishes plans; collects trajectories, (receipt s, active stance), statuses and the
     latest joint state; with pik_frames, (stamp s, {task: frame pose}) of those frame tasks
-    from every /pik/status."""
+    from every /pik/status; with target_tasks, {task: [position (3,) m]} of every target
+    streamed to those pose tasks."""
 
-    def __init__(self, name="trajectory_probe", domain_id=None, pik_frames=()):
+    def __init__(self, name="trajectory_probe", domain_id=None, pik_frames=(), target_tasks=()):
         super().__init__(name, domain_id)
         self.lock = threading.Lock()
         self.trajectories, self.stances, self.statuses = [], [], []
@@ -62,6 +68,11 @@ class TrajectoryProbe(BackgroundNode):
         if pik_frames:
             self.node.create_subscription(SolverStatus, "/pik/status", self._on_pik_status,
                                           RELIABLE)
+        self.target_log = {task: [] for task in target_tasks}
+        for task in target_tasks:
+            self.node.create_subscription(
+                PoseStamped, f"/pik/tasks/{task}/target",
+                lambda msg, task=task: self._on_target(task, msg), RELIABLE)
         self.joint_state = None
         self.joint_log = []   # (stamp s, positions) of every joint state
         self.node.create_subscription(JointTrajectory, "/trajectory/joint_trajectory",
@@ -79,6 +90,11 @@ class TrajectoryProbe(BackgroundNode):
             with self.lock:
                 store.append(msg)
         return keep
+
+    def _on_target(self, task, msg):
+        position = msg.pose.position
+        with self.lock:
+            self.target_log[task].append(np.array([position.x, position.y, position.z]))
 
     def _on_stance(self, msg):
         with self.lock:
@@ -200,10 +216,19 @@ def once_each(stances):
     return kept
 
 
-def waits(statuses):
-    """Stances trajectory_node waited at (statuses 'executing: stance k reached after
-    waiting ...'); each also sent the JointTrajectory again."""
-    return [int(status.split()[2]) for status in statuses if "reached after waiting" in status]
+def reannounced(statuses):
+    """Stances trajectory_node announced again, reached late (statuses 'executing: stance k
+    reached after waiting ...' or '... reached X s late ...'); each also sent the
+    JointTrajectory again."""
+    return [int(status.split()[2]) for status in statuses
+            if status.startswith("executing: stance ") and " reached " in status]
+
+
+def assert_executed(statuses):
+    """statuses of one plan: interpolating, executing, stances reached late only, done."""
+    states = [status.split(":")[0] for status in statuses]
+    assert states[:2] == ["interpolating", "executing"] and states[-1] == "done", statuses
+    assert len(statuses) == 3 + len(reannounced(statuses)), statuses
 
 
 def test_flat_steps_plan_is_executed_through_pik_node(graph, flat_steps_plan):
@@ -213,13 +238,12 @@ def test_flat_steps_plan_is_executed_through_pik_node(graph, flat_steps_plan):
     counts = probe.counts()
     probe.publish_plan(plan_msg(robot, scene, plan))
     statuses = probe.wait_status(counts, "done", 90)
-    states = [status.split(":")[0] for status in statuses]
-    assert states[:3] == ["interpolating", "executing", "done"], statuses
+    assert_executed(statuses)
+    # a stance reached late (a wait for the robot, late ticks: the nodes starved under
+    # load) is announced again when reached, with the trajectory shifted as much
+    waited_at = reannounced(statuses)
 
     trajectories, stances, _ = probe.since(counts)
-    # a stance whose sole landed late (pik_node lagging under load) was waited for: it is
-    # announced again when reached, with the trajectory shifted by the wait
-    waited_at = waits(statuses)
     assert len(trajectories) == 1 + len(waited_at)
     trajectory = trajectories[0]
     assert len(trajectory.points) == (count - 1) * STEPS + 1
@@ -328,7 +352,7 @@ def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat_st
     restart = indices.index(0, 1)
     assert indices[:restart] == list(range(restart)) and 4 <= restart < len(plan.stances)
     assert indices[restart:] == [0, 1, 2]
-    assert len(trajectories) == 2 + len(waits(statuses))
+    assert len(trajectories) == 2 + len(reannounced(statuses))
     assert len(trajectories[-1].points) == 2 * STEPS + 1
     # the first plan's last announced transition ran to its end before the switch
     last_end = stamp_seconds(stances[restart - 1][1])
@@ -397,6 +421,96 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
                    for name, offset in offsets(k, reached).items()), status
 
 
+def test_a_starved_trajectory_node_slows_the_motion_instead_of_skipping_it(processes,
+                                                                          flat_steps_plan):
+    """trajectory_node stopped (SIGSTOP) for 0.5 s while a sole swings, as a loaded machine
+    starves it: when it resumes, its clock advances MAX_TICK_ADVANCE periods, not the time
+    it missed, so no streamed target jumps ahead along the path (a jump sent a sole
+    straight to its landing, along the ground): consecutive targets of each sole are never
+    farther apart than the trajectory moves it in MAX_TICK_ADVANCE periods. The stance the
+    swing ends in is announced again, reached late. Its own pair of nodes in another DDS
+    domain."""
+    robot, scene, plan = flat_steps_plan
+    short = Plan(plan.scene, plan.robot, plan.stances[:4])
+    planner = TransitionPlanner(robot, scene, CollisionModel(robot, scene), steps=STEPS)
+    swing = 1                                    # transition 1 lands a sole
+    assert transition_tasks(scene, planner, short, swing, GAINS)[2]
+    path = planner.interpolate(short)
+    parameters = yaml.safe_load((Path(__file__).resolve().parent.parent / "src" /
+                                 "trajectory_node" / "config" / "trajectory_node.yaml")
+                                .read_text())["trajectory_node"]["ros__parameters"]
+    trajectory = sinusoidal_trajectory(robot, path.q, path.event_samples,
+                                       parameters["velocity_scale"])
+    advance = MAX_TICK_ADVANCE / parameters["rate"]
+    soles = ("left_sole", "right_sole")
+    model, data = robot.model, robot.model.createData()
+    frames = {sole: model.getFrameId(scene.spots[sole].frame) for sole in soles}
+
+    def sole_positions(t):
+        pin.framesForwardKinematics(model, data, trajectory.sample(t)[0])
+        return {sole: data.oMf[frame].translation.copy() for sole, frame in frames.items()}
+
+    grid = np.arange(0.0, trajectory.duration, 0.002)
+    largest = {sole: max(np.linalg.norm(sole_positions(t + advance)[sole]
+                                        - sole_positions(t)[sole]) for t in grid)
+               for sole in soles}
+    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    processes.start("pik_node", name="pik_node", env=domain)
+    node = processes.start("trajectory_node", "--ros-args", "-p",
+                           f"samples_per_transition:={STEPS}", name="trajectory_node",
+                           env=domain)
+    probe = TrajectoryProbe("starved_probe", int(domain["ROS_DOMAIN_ID"]), target_tasks=soles)
+    try:
+        counts = probe.counts()
+        probe.publish_plan(plan_msg(robot, scene, short))
+        wait_until(lambda: any(msg.index == swing + 1 for _, msg in probe.since(counts)[1]),
+                   90, what=f"transition {swing}")
+        time.sleep(0.05)
+        os.kill(node.pid, signal.SIGSTOP)
+        time.sleep(0.5)
+        os.kill(node.pid, signal.SIGCONT)
+        statuses = probe.wait_status(counts, "done", 90)
+        with probe.lock:
+            targets = {sole: np.array(log) for sole, log in probe.target_log.items()}
+    finally:
+        probe.close()
+    for sole in soles:
+        steps = np.linalg.norm(np.diff(targets[sole], axis=0), axis=1)
+        assert len(steps) > 20 and steps.max() <= 1.05 * largest[sole] + 1e-6, \
+            (sole, steps.max(), largest[sole])
+    assert swing + 1 in reannounced(statuses), statuses
+
+
+def test_a_stance_not_reached_in_time_stops_the_execution_and_says_what_is_late(
+        processes, flat_steps_plan):
+    """The CoM made to lag (gain 0.02) with no time to wait (arrival_timeout 0): the plan
+    fails at its first stance naming the CoM and how far off it is; both nodes keep running
+    and pik_node goes on publishing. Its own pair of nodes in another DDS domain."""
+    robot, scene, plan = flat_steps_plan
+    short = Plan(plan.scene, plan.robot, plan.stances[:3])
+    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    pik = processes.start("pik_node", name="pik_node", env=domain)
+    node = processes.start("trajectory_node", "--ros-args", "-p", "com_gain:=0.02", "-p",
+                           "arrival_timeout:=0.0", "-p", f"samples_per_transition:={STEPS}",
+                           name="trajectory_node", env=domain)
+    probe = TrajectoryProbe("timeout_probe", int(domain["ROS_DOMAIN_ID"]), pik_frames={"com"})
+    try:
+        wait_until(lambda: probe.frame_log, 120, what="pik_node's status")
+        counts = probe.counts()
+        probe.publish_plan(plan_msg(robot, scene, short))
+        statuses = probe.wait_status(counts, "failed", 90)
+        published = len(probe.frame_log)
+        wait_until(lambda: len(probe.frame_log) > published, 10, what="pik_node's status")
+    finally:
+        probe.close()
+    failure = [status for status in statuses if status.startswith("failed:")][0]
+    assert "stance 1 not reached" in failure and "com " in failure, failure
+    late = float(failure.split("com ")[1].split()[0])           # mm
+    assert late > 1e3 * ARRIVAL_COM_TOLERANCE, failure
+    assert not any(status.startswith("done:") for status in statuses), statuses
+    assert pik.poll() is None and node.poll() is None
+
+
 def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(processes,
                                                                          flat_steps_plan):
     """Its own pik_node and trajectory_node in another DDS domain (the module's pair would
@@ -437,6 +551,7 @@ def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(process
     ("timing:=fastest", "timing"),
     ("rate:=0.0", "rate"),
     ("arrival_tolerance:=-0.001", "arrival_tolerance"),
+    ("arrival_com_tolerance:=0.5", "arrival_com_tolerance"),
     ("robot:=no_such_robot", "unknown example-robot-data robot"),
 ])
 def test_bad_startup_parameter_is_refused_with_its_reason(processes, parameter, reason):

@@ -5,10 +5,10 @@ The bag must hold /joint_states and /pik/base_pose (pik_node, same header stamps
 /trajectory/active_stance and /trajectory/joint_trajectory (trajectory_node) and
 /stabilizer/state (stabilizer_gate_node); the last execution in the bag (from the last
 active stance 0 on) is checked. Times are header stamps (s); stance k is reached at its
-active stance's stamp (the last one when trajectory_node announced it again after waiting
-for its created contacts), and the transition k -> k + 1 runs from stance k's stamp to
-stance k + 1's: the trajectory's pace from the start, then, after a wait, its end sample
-until stance k + 1 is reached (command_times). Positions are in the world frame (m),
+active stance's stamp (the last one when trajectory_node announced it again, reached late:
+after waiting for the robot, or after late ticks), and the transition k -> k + 1 runs from
+stance k's stamp to stance k + 1's: the trajectory's pace from the start, then its end
+sample until stance k + 1 is reached (command_times). Positions are in the world frame (m),
 joints in rad.
 
 Checks (one table each):
@@ -417,8 +417,9 @@ def command_times(stamps, waypoint_times, wall) -> np.ndarray:
     """Trajectory time (s from its start) commanded at wall times (s; any shape), given
     when each stance was reached (stamps (K,) s) and the JointTrajectory's waypoint times
     (M,): from stance j's stamp, transition j at the trajectory's pace, then its end
-    sample until stance j + 1's stamp (trajectory_node waited there for created
-    contacts). Without a wait this is wall - start. Stance samples: every
+    sample until stance j + 1's stamp (trajectory_node waited there for the robot; after
+    late ticks, the end came later than this pace says). Without a wait this is
+    wall - start. Stance samples: every
     (M - 1) / (K - 1)-th waypoint."""
     per_transition = (len(waypoint_times) - 1) // max(len(stamps) - 1, 1)
     boundaries = waypoint_times[::per_transition][:len(stamps)]

@@ -25,11 +25,16 @@ URDF speed limits; or time_optimal, also under `acceleration_limit`), then execu
   transition release one. Unloaded, the robot is there on time and nothing waits; when
   pik_node lags, holding a contact at its target from centimetres away would drag it along
   its surface, and lifting a foot before the CoM is over the other would unbalance the
-  robot. A wait shifts the time base: the stance goes out again, stamped when it was
-  reached, with `executing: stance k reached after waiting ...`, and the JointTrajectory
-  goes out again with its start shifted. A wait beyond `arrival_timeout` s ends the plan
-  in `failed: execution stopped: ...` naming what is off and by how much (pik_node then
-  holds the created contacts at their targets).
+  robot. A wait beyond `arrival_timeout` s ends the plan in `failed: execution stopped:
+  ...` naming what is off and by how much (pik_node then holds the created contacts at
+  their targets);
+- a late tick (the node starved under load) advances the trajectory's time by
+  MAX_TICK_ADVANCE periods at most: the motion slows down instead of the targets jumping
+  ahead along the path;
+- a stance reached more than LATE_STANCE s after its stamp (a wait, late ticks) goes out
+  again, stamped when it was reached, with `executing: stance k reached after waiting ...`
+  or `... reached X s late ...`, and the JointTrajectory goes out again with its start
+  shifted by as much.
 
 pik_node lost during execution (PikWatch on /pik/status: silent for `pik_status_timeout`
 s, or its cycle counter went back, i.e. a new process): streaming pauses at the current
@@ -52,9 +57,9 @@ what `stance check-plan` runs: contacts, collisions, joint limits, static equili
 contact change per stance); one that fails is rejected with its first failures. A plan that
 cannot be converted, verified, interpolated or executed is reported (status `failed`, log)
 and the node waits for the next one; pik_node then holds its last targets. A plan stamped
-before the node started (the latched last plan, found at start-up) is not executed unless `execute_latched_plan` is true: a node
-restarted by `stance graph` must not replay the last plan from its first witness; the
-status says so. A plan equal to the last one received (header stamp included) is ignored.
+before the node started (the latched last plan, found at start-up) is not executed unless
+`execute_latched_plan` is true: a node restarted by `stance graph` must not replay the last
+plan from its first witness; the status says so. A plan equal to the last one received (header stamp included) is ignored.
 
 Topics and services (QoS in parentheses):
   sub  /contact_planner/plan         stance_msgs/StancePlan (reliable, transient local)
@@ -127,6 +132,11 @@ STATUS_QOS = QoSProfile(depth=STATUS_HISTORY, reliability=ReliabilityPolicy.RELI
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RESEND_PERIOD = 1.0  # s without an answer before a service request is sent again
 SLOW_CALL = 0.1      # s: a pik_node call answered later than this is logged (the stream waited)
+# periods of trajectory time one tick may advance: a late tick (the node starved under load)
+# slows the motion down instead of jumping the targets ahead along the path (a sole would
+# then go straight to where its swing should be, along the ground)
+MAX_TICK_ADVANCE = 2.0
+LATE_STANCE = 0.05   # s: a stance reached this much after its stamp is announced again
 TIMINGS = ("sinusoidal", "time_optimal")
 
 
@@ -456,9 +466,11 @@ class TrajectoryNode(Node):
                 if not self._arrived(gate, transition):
                     waiting = True
                     break
-                if gate.waiting_since is not None:
-                    start = self.get_clock().now() - Duration(seconds=end)
-                    self._reached_after_waiting(msg, transition, gate, trajectory, start, end)
+                reached_base = self.get_clock().now() - Duration(seconds=end)
+                late = (reached_base - start).nanoseconds * 1e-9
+                if gate.waiting_since is not None or late > LATE_STANCE:
+                    start = reached_base
+                    self._reached_late(msg, transition, gate, trajectory, start, end, late)
                 if transition == last:
                     self._status("done", f"reached stance {len(plan.stances) - 1} of scene "
                                          f"{plan.scene!r}")
@@ -473,9 +485,13 @@ class TrajectoryNode(Node):
                 self._publish_active(msg, transition + 1, start, boundaries[transition + 1])
             next_tick += self.period
             time.sleep(max(next_tick - time.monotonic(), 0.0))
+            now = time.monotonic()
+            next_tick = max(next_tick, now - self.period)   # no burst of catch-up ticks
             if waiting:   # the clock holds at the transition's end
-                began = time.monotonic() - boundaries[transition + 1]
-            t = min(time.monotonic() - began, trajectory.duration)
+                began = now - boundaries[transition + 1]
+            else:         # a late tick advances MAX_TICK_ADVANCE periods at most
+                began = max(began, now - t - MAX_TICK_ADVANCE * self.period)
+            t = min(now - began, trajectory.duration)
 
     def _arrived(self, gate, transition) -> bool:
         """Whether the robot is at stance transition + 1 (pik_node's newest status): the
@@ -491,18 +507,22 @@ class TrajectoryNode(Node):
         elif gate.timed_out(now):
             raise ExecutionError(f"stance {transition + 1} not reached: after "
                                  f"{gate.waited(now):.2f} s, {gate.describe_late()} (arrival "
-                                 f"tolerance {1e3 * gate.tolerance[0]:g} mm, "
-                                 f"{gate.tolerance[1]:g} rad)")
+                                 f"tolerances {1e3 * gate.tolerance[0]:g} mm, "
+                                 f"{gate.tolerance[1]:g} rad, CoM "
+                                 f"{1e3 * gate.com_tolerance:g} mm)")
         return False
 
-    def _reached_after_waiting(self, msg, transition, gate, trajectory, start, end):
-        """Stance transition + 1, reached after a wait: announce it again stamped now, and
-        the JointTrajectory with its start shifted by the wait (time base: `start`)."""
+    def _reached_late(self, msg, transition, gate, trajectory, start, end, late):
+        """Stance transition + 1, reached `late` s after its stamp (a wait for the robot,
+        late ticks): announce it again stamped now, and the JointTrajectory with its start
+        shifted by as much (time base: `start`)."""
         self._publish_active(msg, transition + 1, start, end)
         self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
-        self._status("executing", f"stance {transition + 1} reached after waiting "
-                                  f"{gate.waited(time.monotonic()):.2f} s for the robot to "
-                                  f"arrive ({gate.describe_late(gate.late_when_due)} when due)")
+        why = (f"after waiting {gate.waited(time.monotonic()):.2f} s for the robot to arrive "
+               f"({gate.describe_late(gate.late_when_due)} when due)"
+               if gate.waiting_since is not None else
+               f"{late:.2f} s late (late ticks: trajectory_node starved, the motion slowed)")
+        self._status("executing", f"stance {transition + 1} reached {why}")
 
     def _recover(self, reason, transition, t, trajectory, stack, sent):
         """Streaming paused at sample time t (s): wait up to pik_restart_timeout s for
