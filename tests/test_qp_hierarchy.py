@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
 
 from helpers.problems import hierarchy_problems, residual
-from stance.hierarchy import DampedHierarchy, Level
+from stance.hierarchy import DampedHierarchy, Level, stack_levels
 from stance.pik import PIKSolver, default_stack_specs
 from stance.qp_hierarchy import (COLD_MAX_ITERATIONS, INNER_MAX_ITERATIONS,
                                  WARM_MAX_ITERATIONS, QPHierarchy, robot_dof_names)
@@ -93,6 +93,22 @@ def test_lower_levels_keep_higher_levels_optimum_under_bounds(problem):
         assert abs(residual(level, full.dq) - residual(level, prefix.dq)) < PRIORITY_TOLERANCE
         assert abs(full.step_residuals[index] - prefix.step_residuals[index]) \
             < PRIORITY_TOLERANCE
+
+
+@PROPERTY
+@given(bounded_problems())
+def test_the_compiled_solve_is_the_answer_exactly_where_no_level_crosses_a_bound(problem):
+    """Where the cascade keeps every level's unconstrained step (no QP), the answer is
+    DampedHierarchy's compiled solve, its restart state included; elsewhere the cascade
+    runs. Either way it is the cascade's result."""
+    levels, nv, fixed_index, fixed_dq, (lower, upper) = problem
+    solver, reference = QPHierarchy(damping=DAMPING), QPHierarchy(damping=DAMPING)
+    solution = solver.solve(levels, nv, fixed_index, fixed_dq, bounds=(lower, upper))
+    cascade = reference._cascade(*stack_levels(levels, nv), fixed_index, fixed_dq,
+                                 free_mask(nv, fixed_index), lower, upper)
+    np.testing.assert_allclose(solution.dq, cascade.dq, rtol=0, atol=AGREEMENT)
+    assert (solution.restart is not None) == (reference.qp_solves == 0)
+    assert solver.qp_solves == reference.qp_solves
 
 
 @PROPERTY

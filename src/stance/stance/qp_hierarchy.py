@@ -16,7 +16,11 @@ out-of-reach level is met in the least-squares sense within the bounds and its r
 is reported.
 
 Per level, the unconstrained damped least squares y is kept when it respects the bounds:
-the result is then DampedHierarchy's (to rounding). Otherwise a persistent ProxSuite dense
+the result is then DampedHierarchy's (to rounding). So DampedHierarchy's compiled solve
+comes first, and when every level's dq respects the bounds (most steps: progressive
+clamping keeps joints off their limits) its solution is the answer, restart state
+included (a re-solve of the clamping loop then restarts where it can); the cascade below
+runs only when a level crosses a bound. Otherwise a persistent ProxSuite dense
 QP (one per level and size) is updated and warm-started from its previous result, cold
 started when that fails, to eps_abs 1e-9 within a bounded number of iterations (outer and
 inner: ProxSuite's max_iter alone caps only the outer ones, and a warm start once ran
@@ -35,8 +39,8 @@ import numpy as np
 import scipy.optimize
 from proxsuite import proxqp
 
-from .hierarchy import (HierarchySolution, _damped_least_squares, _nullspace_update,
-                        stack_levels)
+from .hierarchy import (DampedHierarchy, HierarchySolution, _damped_least_squares,
+                        _nullspace_update, stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
 # ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
@@ -101,6 +105,7 @@ class QPHierarchy:
         self.dof_names = None if dof_names is None else list(dof_names)
         self.velocity_steps = None if velocity_steps is None else np.asarray(velocity_steps,
                                                                              dtype=float)
+        self._unconstrained = DampedHierarchy(damping, rank_tolerance)
         self._qps = {}
         # ProxSuite objects still alive when the interpreter exits make nanobind report
         # them as leaks: drop them first (atexit runs before modules are torn down)
@@ -121,14 +126,28 @@ class QPHierarchy:
         return self.solve_stacked(*stack_levels(levels, nv), fixed_index, fixed_dq, bounds)
 
     def solve_stacked(self, jacobian, target, offsets, fixed_index=(), fixed_dq=(),
-                      bounds=None) -> HierarchySolution:
+                      bounds=None, previous=None) -> HierarchySolution:
         """Levels stacked by stack_levels(); fixed DoFs dq[fixed_index] = fixed_dq come first,
         then bounds = (lower, upper) per DoF (nv each, +-inf where unbounded) on the others
-        (a free DoF whose bounds exclude 0 starts on the nearer one)."""
+        (a free DoF whose bounds exclude 0 starts on the nearer one). previous: as for
+        DampedHierarchy.solve_stacked (used when it came from the unconstrained solve)."""
         nv = jacobian.shape[1]
         free = np.ones(nv, dtype=bool)
         free[np.asarray(fixed_index, dtype=int)] = False
         lower, upper = _checked_bounds(bounds, nv)
+        if np.all((lower[free] <= 0.0) & (upper[free] >= 0.0)):
+            solution = self._unconstrained.solve_stacked(jacobian, target, offsets,
+                                                         fixed_index, fixed_dq,
+                                                         previous=previous)
+            if _levels_within(solution.restart.level_starts, free, lower, upper):
+                return solution
+        return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
+                             upper)
+
+    def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper):
+        """The level by level solve of the module docstring (free: bool (nv), the DoFs not
+        in fixed_index; lower, upper: bounds (nv each))."""
+        nv = jacobian.shape[1]
         dq = np.clip(np.zeros(nv), lower, upper)
         dq[np.asarray(fixed_index, dtype=int)] = fixed_dq
         bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
@@ -213,6 +232,16 @@ class QPHierarchy:
                 dof_name = self.dof_names[dof] if self.dof_names else f"dof{dof}"
                 names.append(f"{dof_name} {'velocity' if velocity else side}")
         return names
+
+
+def _levels_within(level_starts, free, lower, upper) -> bool:
+    """Whether each level's dq (level_starts: (levels + 1) x nv, the start then each level's
+    result) keeps the free DoFs inside [lower, upper], or not further out than the level
+    before left them: the cascade's test for keeping a level's unconstrained step."""
+    before = level_starts[:-1, free]
+    after = level_starts[1:, free]
+    return bool(np.all((after >= np.minimum(lower[free], before))
+                       & (after <= np.maximum(upper[free], before))))
 
 
 def _checked_bounds(bounds, nv: int):
