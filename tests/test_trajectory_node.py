@@ -402,7 +402,8 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
     assert len(trajectories) == 1 + len(waited)
     starts = [stamp_seconds(msg) for msg in trajectories]
     assert np.all(np.diff(starts) > 0.0)   # each wait shifts the time base
-    tolerance = {**{spot: ARRIVAL_TOLERANCE[0] for spot in frames}, "com": ARRIVAL_COM_TOLERANCE}
+    tolerance = {**{spot: ARRIVAL_TOLERANCE[0] for spot in frames},
+                 "com": ARRIVAL_COM_TOLERANCE}
 
     def offsets(k, stamp):
         """{created spot or 'com': m off its arrival target} in pik_node's status at stamp."""

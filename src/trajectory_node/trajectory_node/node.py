@@ -59,7 +59,8 @@ cannot be converted, verified, interpolated or executed is reported (status `fai
 and the node waits for the next one; pik_node then holds its last targets. A plan stamped
 before the node started (the latched last plan, found at start-up) is not executed unless
 `execute_latched_plan` is true: a node restarted by `stance graph` must not replay the last
-plan from its first witness; the status says so. A plan equal to the last one received (header stamp included) is ignored.
+plan from its first witness; the status says so. A plan equal to the last one received
+(header stamp included) is ignored.
 
 Topics and services (QoS in parentheses):
   sub  /contact_planner/plan         stance_msgs/StancePlan (reliable, transient local)

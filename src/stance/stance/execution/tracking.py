@@ -42,7 +42,7 @@ ARRIVAL_TOLERANCE = (1e-3, 1e-2)
 # transition 1-2 mm behind its streamed target (the targets' latency); a lag that matters
 # for balance is centimetres (a foot is 10-20 cm)
 ARRIVAL_COM_TOLERANCE = 5e-3
-ARRIVAL_TIMEOUT = 5.0   # s a transition's end waits for its created contacts at most
+ARRIVAL_TIMEOUT = 5.0   # s a transition's end waits for the robot to arrive at most
 
 
 def held_frame_target(scene, contact) -> pin.SE3:
