@@ -419,8 +419,7 @@ def command_times(stamps, waypoint_times, wall) -> np.ndarray:
     (M,): from stance j's stamp, transition j at the trajectory's pace, then its end
     sample until stance j + 1's stamp (trajectory_node waited there for the robot; after
     late ticks, the end came later than this pace says). Without a wait this is
-    wall - start. Stance samples: every
-    (M - 1) / (K - 1)-th waypoint."""
+    wall - start. Stance samples: every (M - 1) / (K - 1)-th waypoint."""
     per_transition = (len(waypoint_times) - 1) // max(len(stamps) - 1, 1)
     boundaries = waypoint_times[::per_transition][:len(stamps)]
     j = np.clip(np.searchsorted(stamps, wall, side="right") - 1, 0, len(stamps) - 1)

@@ -67,8 +67,8 @@ Topics and services (QoS in parentheses):
   pub  /trajectory/joint_trajectory  trajectory_msgs/JointTrajectory (reliable, transient
                                      local), header.stamp = execution start
   pub  /trajectory/active_stance     stance_msgs/ContactStance (reliable, keep last 10); a
-                                     stance reached after a wait goes out again, stamped
-                                     when it was reached
+                                     stance reached late goes out again, stamped when it
+                                     was reached
   pub  /trajectory/status            std_msgs/String "<state>: <message>", state idle |
                                      interpolating | executing | done | failed (reliable,
                                      transient local)
@@ -90,7 +90,6 @@ import threading
 import time
 import traceback
 
-import numpy as np
 import pinocchio as pin
 from contact_planner_node.conversions import actuated_q_index
 from geometry_msgs.msg import PointStamped, PoseStamped
@@ -211,23 +210,13 @@ class PikWatch:
         return f"pik_node silent for {silent:.2f} s" if silent > self.silence else None
 
     def frames(self, names) -> dict:
-        """{task name: achieved frame pose (pin.SE3, world)} of the named frame tasks in
-        the newest status taken (lost() takes it); names it lacks are left out."""
+        """{task name: achieved pose (pin.SE3, world; a CoM task's: its position, identity
+        rotation)} of the named frame or CoM tasks in the newest status taken (lost() takes
+        it); names it lacks are left out."""
         if self._newest is None:
             return {}
         return {task.name: se3_from_pose_msg(task.current) for task in self._newest.tasks
                 if task.name in names}
-
-    def com(self) -> np.ndarray | None:
-        """Achieved CoM (3, world, m) of the 'com' task in the newest status taken, None
-        without one."""
-        if self._newest is None:
-            return None
-        for task in self._newest.tasks:
-            if task.name == "com":
-                position = task.current.position
-                return np.array([position.x, position.y, position.z])
-        return None
 
     def back(self, lost_at: float) -> bool | None:
         """Once armed and lost at monotonic `lost_at`: True when a new process publishes,
@@ -500,7 +489,9 @@ class TrajectoryNode(Node):
         ExecutionError once it has been awaited arrival_timeout s."""
         now = time.monotonic()
         was_waiting = gate.waiting_since is not None
-        if gate.update(self._pik.frames(gate.targets), now, self._pik.com()):
+        poses = self._pik.frames(set(gate.targets) | {"com"})
+        com = poses.pop("com", None)
+        if gate.update(poses, now, None if com is None else com.translation):
             return True
         if not was_waiting:
             self.get_logger().info(f"waiting at stance {transition + 1} for the robot to "

@@ -207,7 +207,7 @@ def track(solver, scene, planner, plan, path, trajectory, rate: float = 500.0,
     stack, held, gate = enter(0)
     frames = {spot: model.getFrameId(scene.spots[spot].frame) for spot in scene.spots}
     pin.framesForwardKinematics(model, data, q)
-    center = pin.centerOfMass(model, data, q, False).copy()
+    center = pin.centerOfMass(model, data, False).copy()
     while True:
         now = k / rate
         if clock >= boundaries[transition + 1]:
@@ -229,7 +229,7 @@ def track(solver, scene, planner, plan, path, trajectory, rate: float = 500.0,
         result = solver.step(q)
         q = result.q
         pin.framesForwardKinematics(model, data, q)
-        center = pin.centerOfMass(model, data, q, False).copy()
+        center = pin.centerOfMass(model, data, False).copy()   # at the kinematics just done
         com.append(center)
         times.append(now)
         transitions.append(transition)
