@@ -101,6 +101,25 @@ def test_blend_is_continuous_bounded_and_takes_the_ramp_time(gate):
     assert (on.min(), on.max()) == pytest.approx((6.0, 6.0 + RAMP), abs=2 * dt)
 
 
+def test_on_switch_waits_for_the_robot_to_reach_the_release_stance(gate):
+    planned = execution(gate, hand_on_table_stances(), [(1.0, 3.0), (4.0, 6.0)])
+    pending = planned[:2] + [dataclasses.replace(planned[2], reached=math.inf)]
+    for t in (6.0, 6.5, 60.0):       # the planned end is past, the robot not known there
+        state = gate.state(t, pending)
+        assert (state.enabled, state.blend, state.balance_mode, state.stance_index) == \
+            (False, 0.0, STATIC_EQUILIBRIUM, 2)
+    assert gate.prune(pending, 60.0) == pending     # a pending switch is never pruned
+    late = planned[:2] + [dataclasses.replace(planned[2], reached=6.8)]
+    assert gate.state(6.79, late).blend == 0.0
+    switching_on = gate.state(6.8 + RAMP / 2, late)
+    assert switching_on.enabled and 0.0 < switching_on.blend < 1.0
+    assert gate.state(6.8 + RAMP, late).blend == 1.0
+    # reached before the planned end: the switch keeps the planned end
+    early = planned[:2] + [dataclasses.replace(planned[2], reached=5.0)]
+    times = np.arange(4.0, 7.0, 1e-3)
+    assert [gate.state(t, early) for t in times] == [gate.state(t, planned) for t in times]
+
+
 def test_off_ramp_ends_before_a_short_transition_creates_the_contact(gate):
     transitions = execution(gate, hand_on_table_stances(), [(1.0, 1.2), (4.0, 6.0)])
     assert 0.0 < gate.state(1.1, transitions).blend < 1.0

@@ -9,9 +9,13 @@ frames of the messages (the first contact seen on a surface name defines its pla
 
 Contract of /trajectory/active_stance: stance k is published when the transition into it
 starts (the first stance: when execution starts), header.stamp = when that transition ends
-(the robot reaches stance k's witness). A stamp not after the receipt time means the
-transition is over on receipt: an OFF switch then comes late, when the contact is already
-made (its ramp still takes ramp_time, so nothing jumps). A plan on /contact_planner/plan is
+as planned (the robot reaches stance k's witness), and published again once the robot is
+there if that is later than planned, or if no next stance follows (the end of an
+execution). A stamp not after the receipt time means the transition is over on receipt:
+an OFF switch then comes late, when the contact is already made (its ramp still takes
+ramp_time, so nothing jumps). An ON switch at the end of a transition waits for the robot
+to be known at its stance: stance k published again, or stance k + 1 (the next transition
+starts); without either, the stabilizer stays off. A plan on /contact_planner/plan is
 scheduled ahead (logged) and an active stance not following it is reported. Bad input (no
 contact, no supporting contact, NaN or non-unit pose, unknown surface or spot with a
 scene, a contact off its surface's plane) is logged and rejected; the state is kept.
@@ -25,6 +29,7 @@ Topics (QoS in parentheses):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 
@@ -121,14 +126,24 @@ class StabilizerGateNode(Node):
         except ValueError as error:
             self.get_logger().warning(f"active stance {msg.index} rejected, state kept: {error}")
             return
-        start = self.get_clock().now().nanoseconds * 1e-9
-        end = max(start, Time.from_msg(msg.header.stamp).nanoseconds * 1e-9)
-        if self.transitions:
-            self._compare_with_plan(self.transitions[-1].support, support)
-        self.transitions.append(Transition(support, start, end))
+        now = self.get_clock().now().nanoseconds * 1e-9
+        stamp = Time.from_msg(msg.header.stamp).nanoseconds * 1e-9
+        last = self.transitions[-1] if self.transitions else None
+        if last is not None and last.support.index == msg.index:
+            # announced again: reached, later than planned (its stamp)
+            self.transitions[-1] = dataclasses.replace(last, reached=now)
+            self.get_logger().info(f"active stance {msg.index} reached, "
+                                   f"{stamp - last.end:.2f} s after its planned end")
+            return
+        if last is not None:
+            # the next transition starts: the robot is at the stance before it
+            self.transitions[-1] = dataclasses.replace(last, reached=min(last.reached, now))
+            self._compare_with_plan(last.support, support)
+        end = max(now, stamp)
+        self.transitions.append(Transition(support, now, end, reached=math.inf))
         self.get_logger().info(f"active stance {msg.index}: "
                                f"{'coplanar' if support.coplanar else 'non-coplanar'} support, "
-                               f"transition over in {end - start:.2f} s")
+                               f"transition over in {end - now:.2f} s as planned")
 
     def _compare_with_plan(self, previous, support):
         """Warn when the transition previous -> support switches otherwise than planned."""

@@ -34,7 +34,9 @@ URDF speed limits; or time_optimal, also under `acceleration_limit`), then execu
 - a stance reached more than LATE_STANCE s after its stamp (a wait, late ticks) goes out
   again, stamped when it was reached, with `executing: stance k reached after waiting ...`
   or `... reached X s late ...`, and the JointTrajectory goes out again with its start
-  shifted by as much.
+  shifted by as much. The last stance executed (the plan's, or the one a newer plan takes
+  over at) goes out again when reached in any case: no next stance says that the robot is
+  there, which an ON switch of stabilizer_gate_node waits for.
 
 pik_node lost during execution (PikWatch on /pik/status: silent for `pik_status_timeout`
 s, or its cycle counter went back, i.e. a new process): streaming pauses at the current
@@ -67,8 +69,8 @@ Topics and services (QoS in parentheses):
   pub  /trajectory/joint_trajectory  trajectory_msgs/JointTrajectory (reliable, transient
                                      local), header.stamp = execution start
   pub  /trajectory/active_stance     stance_msgs/ContactStance (reliable, keep last 10); a
-                                     stance reached late goes out again, stamped when it
-                                     was reached
+                                     stance reached late, and the last one executed, go
+                                     out again when reached
   pub  /trajectory/status            std_msgs/String "<state>: <message>", state idle |
                                      interpolating | executing | done | failed (reliable,
                                      transient local)
@@ -458,14 +460,18 @@ class TrajectoryNode(Node):
                     break
                 reached_base = self.get_clock().now() - Duration(seconds=end)
                 late = (reached_base - start).nanoseconds * 1e-9
+                superseded = transition < last and self._has_pending()
                 if gate.waiting_since is not None or late > LATE_STANCE:
                     start = reached_base
                     self._reached_late(msg, transition, gate, trajectory, start, end, late)
+                elif transition == last or superseded:
+                    # no next stance announces that the robot is there (stabilizer gate)
+                    self._publish_active(msg, transition + 1, start, end)
                 if transition == last:
                     self._status("done", f"reached stance {len(plan.stances) - 1} of scene "
                                          f"{plan.scene!r}")
                     return
-                if self._has_pending():
+                if superseded:
                     self._stream(trajectory.sample(end)[0], stack, held)
                     self._status("executing", f"superseded by a newer plan at stance "
                                               f"{transition + 1}")

@@ -13,7 +13,9 @@ The rule, on the supporting contacts (in_stability) of consecutive stances:
   (a contact is created off the plane): OFF at the START of that transition, so the ramp
   is over before the contact is made (shortened to the transition if that is shorter);
 - transition into stance k whose support is coplanar while stance k-1's was not (the last
-  off-plane contact leaves the support): ON at the END of that transition;
+  off-plane contact leaves the support): ON at the END of that transition, and not before
+  the robot is known to be at stance k (Transition.reached: a robot late on its plan is
+  still moving its weight off the released contact at the planned end);
 - every other transition: no switch.
 "Released" is taken as out of the support: a plan stance keeps a removed contact as
 geometric (in_stability False) while its witness still touches it, and the next transition
@@ -68,12 +70,23 @@ class SwitchEvent:
 
 @dataclass(frozen=True)
 class Transition:
-    """The motion into `support`'s stance over [start, end] (s). The first transition of an
-    execution stands for the stance it starts in: its times are not used."""
+    """The motion into `support`'s stance over [start, end] (s, `end` as planned). The first
+    transition of an execution stands for the stance it starts in: its times are not used.
+
+    reached: when the robot was known to be at the stance (s). A switch at the END of the
+    transition waits for it (at max(end, reached)): a robot late on its plan is still
+    releasing the contact at the planned end. -inf (default) trusts the planned end; +inf
+    while not known yet (the switch is pending).
+    """
 
     support: Support
     start: float
     end: float
+    reached: float = -math.inf
+
+    def switch_time(self, at: str) -> float:
+        """When a switch at the START or END (`at`) of this transition happens (s)."""
+        return self.start if at == START else max(self.end, self.reached)
 
 
 @dataclass(frozen=True)
@@ -146,8 +159,7 @@ class StabilizerGate:
             event = switch(previous.support, current)
             if event is None:
                 continue
-            at = transition.start if event.at == START else transition.end
-            at = max(at, ramp.origin)
+            at = max(transition.switch_time(event.at), ramp.origin)
             if at > t:
                 break
             duration = self.ramp_time
@@ -165,8 +177,7 @@ class StabilizerGate:
             transition = transitions[index]
             event = switch(transitions[index - 1].support, transition.support)
             if event is not None:
-                at = transition.start if event.at == START else transition.end
-                if at + self.ramp_time <= t:
+                if transition.switch_time(event.at) + self.ramp_time <= t:
                     return list(transitions[index - 1:])
         return list(transitions)
 
