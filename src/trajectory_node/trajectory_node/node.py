@@ -46,8 +46,9 @@ until pik_node publishes again, for at most `pik_restart_timeout` s. A restarted
 (/pik/set_configuration) and the current stack again (`executing: pik_node restarted at
 transition i ...; resuming from the last commanded configuration`); the same process after
 a stall keeps its own. Streaming then resumes from that sample, the time base shifted by
-the pause (the JointTrajectory goes out again with its start shifted; stances already
-announced keep their stamps). If pik_node does not come back in time, or refuses the
+the pause (the JointTrajectory goes out again with its start shifted; the stance in
+progress, reached late by the pause, goes out again when reached: `executing: stance k
+reached X s late (streaming paused Y s for pik_node)`). If pik_node does not come back in time, or refuses the
 re-sent configuration or stack, the plan ends in `failed: execution stopped: pik_node ...`
 and the node waits for the next one.
 
@@ -431,7 +432,8 @@ class TrajectoryNode(Node):
         start, began = self.get_clock().now(), time.monotonic()
         self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
         self._publish_active(msg, 0, start, 0.0)
-        self._publish_active(msg, 1, start, boundaries[1])
+        due = self._publish_active(msg, 1, start, boundaries[1])
+        paused = 0.0   # s streaming paused in the current transition (pik_node lost)
         self._status("executing", f"{len(plan.stances)} stances in {trajectory.duration:.2f} "
                                   f"s ({self.timing})")
         transition, last, t, next_tick = 0, len(plan.stances) - 2, 0.0, began
@@ -447,7 +449,9 @@ class TrajectoryNode(Node):
             except PikLost as lost:
                 sent = self._recover(str(lost), transition, t, trajectory, stack, sent)
                 began, next_tick = time.monotonic() - t, time.monotonic()
-                start = self.get_clock().now() - Duration(seconds=t)
+                resumed = self.get_clock().now() - Duration(seconds=t)
+                paused += (resumed - start).nanoseconds * 1e-9
+                start = resumed
                 self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
                 # waiting starts over with the new process
                 gate = self._gate(gate.targets, gate.com)
@@ -458,12 +462,13 @@ class TrajectoryNode(Node):
                 if not self._arrived(gate, transition):
                     waiting = True
                     break
-                reached_base = self.get_clock().now() - Duration(seconds=end)
-                late = (reached_base - start).nanoseconds * 1e-9
+                now = self.get_clock().now()
+                late = (now - due).nanoseconds * 1e-9    # after the stamp announced
                 superseded = transition < last and self._has_pending()
                 if gate.waiting_since is not None or late > LATE_STANCE:
-                    start = reached_base
-                    self._reached_late(msg, transition, gate, trajectory, start, end, late)
+                    start = now - Duration(seconds=end)
+                    self._reached_late(msg, transition, gate, trajectory, start, end, late,
+                                       paused)
                 elif transition == last or superseded:
                     # no next stance announces that the robot is there (stabilizer gate)
                     self._publish_active(msg, transition + 1, start, end)
@@ -478,7 +483,9 @@ class TrajectoryNode(Node):
                     return
                 transition += 1
                 stack, held, gate = self._transition(scene, planner, plan, transition)
-                self._publish_active(msg, transition + 1, start, boundaries[transition + 1])
+                due = self._publish_active(msg, transition + 1, start,
+                                           boundaries[transition + 1])
+                paused = 0.0
             next_tick += self.period
             time.sleep(max(next_tick - time.monotonic(), 0.0))
             now = time.monotonic()
@@ -510,16 +517,21 @@ class TrajectoryNode(Node):
                                  f"{1e3 * gate.com_tolerance:g} mm)")
         return False
 
-    def _reached_late(self, msg, transition, gate, trajectory, start, end, late):
+    def _reached_late(self, msg, transition, gate, trajectory, start, end, late, paused):
         """Stance transition + 1, reached `late` s after its stamp (a wait for the robot,
-        late ticks): announce it again stamped now, and the JointTrajectory with its start
-        shifted by as much (time base: `start`)."""
+        late ticks, streaming `paused` s for a lost pik_node): announce it again stamped
+        now, and the JointTrajectory with its start shifted by as much (time base:
+        `start`)."""
         self._publish_active(msg, transition + 1, start, end)
         self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
-        why = (f"after waiting {gate.waited(time.monotonic()):.2f} s for the robot to arrive "
-               f"({gate.describe_late(gate.late_when_due)} when due)"
-               if gate.waiting_since is not None else
-               f"{late:.2f} s late (late ticks: trajectory_node starved, the motion slowed)")
+        pause = f"streaming paused {paused:.2f} s for pik_node" if paused else ""
+        if gate.waiting_since is not None:
+            waited = (f"waiting {gate.waited(time.monotonic()):.2f} s for the robot to arrive "
+                      f"({gate.describe_late(gate.late_when_due)} when due)")
+            why = f"after {pause + ' and ' if pause else ''}{waited}"
+        else:
+            why = (f"{late:.2f} s late ("
+                   f"{pause or 'late ticks: trajectory_node starved, the motion slowed'})")
         self._status("executing", f"stance {transition + 1} reached {why}")
 
     def _recover(self, reason, transition, t, trajectory, stack, sent):
@@ -588,12 +600,14 @@ class TrajectoryNode(Node):
         return self._target_pubs[key]
 
     def _publish_active(self, msg, index, start, ends_after):
-        """Stance `index` of the plan message, stamped start + ends_after (s)."""
+        """Stance `index` of the plan message, stamped start + ends_after (s); returns the
+        stamp (rclpy Time)."""
         stance = copy.deepcopy(msg.stances[index])
         stance.index = index
-        stance.header = Header(stamp=(start + Duration(seconds=float(ends_after))).to_msg(),
-                               frame_id="world")
+        stamp = start + Duration(seconds=float(ends_after))
+        stance.header = Header(stamp=stamp.to_msg(), frame_id="world")
         self.active_stance_pub.publish(stance)
+        return stamp
 
     def _joint_trajectory(self, trajectory, start) -> JointTrajectory:
         """The timed plan at its samples' times: actuated 1-DoF joints (rad, rad/s)."""
