@@ -90,13 +90,12 @@ def test_restarted_pik_node_execution_resumes_to_the_last_witness(processes, tmp
         assert [msg.index for _, msg in once_each(stances)] == list(range(len(plan.stances)))
         # the stance in progress was reached late by the pause: announced again, stamped
         # when reached (what check-run and the stabilizer gate go by)
-        paused_in = [s for s in statuses
-                     if s.startswith("executing: stance ") and "streaming paused" in s]
-        assert len(paused_in) == 1, statuses
-        index = int(paused_in[0].split()[2])
-        paused = float(paused_in[0].split("streaming paused ")[1].split()[0])   # s
-        due, reached = [stamp_seconds(msg) for _, msg in stances if msg.index == index]
-        assert paused > 1.0 and reached - due >= paused - 0.01, (reached - due, paused)
+        late = [s for s in statuses
+                if s.startswith("executing: stance ") and "streaming paused" in s]
+        assert len(late) == 1, statuses
+        due, reached = [stamp_seconds(msg) for _, msg in stances
+                        if msg.index == int(late[0].split()[2])]
+        assert reached - due > 1.0   # pik_node's start-up at least
         wait_until(lambda: probe.joint_error(robot, plan.stances[-1].q) < JOINT_TOLERANCE,
                    20, what="the restarted pik_node's joints on the last witness")
 

@@ -127,40 +127,37 @@ def test_hand_contact_switches_off_before_and_on_after_its_release(gate, scene):
     assert 0.0 < off[0].blend < 1.0               # ramping, not jumping
     assert off[-1].blend == 0.0                   # off before the contact is made
 
-    # released on time: the next stance, announced when the robot is there, switches on
+    # released, then the next stance announced 0.3 s after the planned end: the robot is
+    # known to be at the release stance only then, and the gate switches on only then
     count = probe.count()
     released_at = time.time() + 0.6
     probe.publish_stance(stance_msg(scene, 2, HAND_ON_TABLE[2], released_at))
-    wait_until(lambda: time.time() > released_at, 3, what="the planned release")
+    wait_until(lambda: time.time() > released_at + 0.3, 3, what="past the planned release")
+    confirmed_at = time.time()
     probe.publish_stance(stance_msg(scene, 3, FEET, time.time() + 1.0))
-    wait_until(lambda: time.time() > released_at + RAMP + 0.2, 3, what="the on ramp")
+    wait_state(probe, lambda s: s.stance_index == 3 and s.blend == 1.0, 5, "the on ramp")
     states = probe.states_since(count)
-    during = [s for s in states if s.stance_index == 2]
-    after = [s for s in states if seconds(s.header.stamp) > released_at + 0.05]
-    assert during and all(not s.enabled and s.blend == 0.0 and s.coplanar for s in during)
-    assert seconds(during[-1].header.stamp) >= released_at - 2.0 / RATE
-    assert after and all(s.enabled and s.balance_mode == "com_polygon" for s in after)
-    assert "released" in after[0].reason and 0.0 < after[0].blend < 1.0
-    assert after[-1].blend == 1.0
-    assert_switches_on_once(states, released_at)
+    release = [s for s in states if s.stance_index == 2]
+    assert release and all(not s.enabled and s.blend == 0.0 and s.coplanar for s in release)
+    assert seconds(release[-1].header.stamp) > released_at + 0.2
+    on = [s for s in states if s.enabled]
+    assert all(s.balance_mode == "com_polygon" for s in on)
+    assert "released" in on[0].reason and 0.0 < on[0].blend < 1.0
+    assert_switches_on_once(states, confirmed_at)
 
-    # released late: past the planned end the robot is still releasing, the gate stays off
-    # until the stance is announced again, reached
+    # released late, announced again when reached: off until then
     probe.publish_stance(stance_msg(scene, 4, HAND_ON_TABLE[1], time.time() + 0.5))
-    wait_state(probe, lambda s: s.stance_index == 4 and s.blend == 0.0, 3, "off again")
+    wait_state(probe, lambda s: s.stance_index == 4 and s.blend == 0.0, 5, "off again")
     count = probe.count()
     planned_at = time.time() + 0.3
     probe.publish_stance(stance_msg(scene, 5, HAND_ON_TABLE[2], planned_at))
     wait_until(lambda: time.time() > planned_at + 0.5, 3, what="past the planned release")
-    late = probe.states_since(count)
-    assert [s for s in late if seconds(s.header.stamp) > planned_at + 0.1]
-    assert all(not s.enabled and s.blend == 0.0 and s.stance_index == 5 for s in late)
     reached_at = time.time()
     probe.publish_stance(stance_msg(scene, 5, HAND_ON_TABLE[2], reached_at))
-    wait_until(lambda: time.time() > reached_at + RAMP + 0.2, 3, what="the on ramp")
-    states = probe.states_since(count)
+    wait_state(probe, lambda s: s.stance_index == 5 and s.blend == 1.0, 5, "the on ramp")
+    states = [s for s in probe.states_since(count) if s.stance_index == 5]
+    assert seconds(states[0].header.stamp) < planned_at        # seen from before its end
     assert_switches_on_once(states, reached_at)
-    assert states[-1].enabled and states[-1].blend == 1.0
 
     blends = np.array([s.blend for s in probe.states_since(0)])
     assert blends.min() >= 0.0 and blends.max() <= 1.0
@@ -170,11 +167,13 @@ def test_hand_contact_switches_off_before_and_on_after_its_release(gate, scene):
 
 
 def assert_switches_on_once(states, at):
-    """states switch on once, within a few state periods after `at` (s), never back off."""
+    """states switch on once, not before `at` (s: when what confirms the release was
+    sent), and never back off; off with blend 0 before."""
     enabled = [s.enabled for s in states]
     first_on = enabled.index(True)
-    assert not any(enabled[:first_on]) and all(enabled[first_on:])
-    assert at <= seconds(states[first_on].header.stamp) <= at + 0.1 + 2.0 / RATE
+    assert all(not s.enabled and s.blend == 0.0 for s in states[:first_on])
+    assert all(enabled[first_on:])
+    assert at <= seconds(states[first_on].header.stamp) <= at + 1.0
 
 
 @pytest.mark.parametrize("case", ["nan pose", "no contact", "no supporting contact",

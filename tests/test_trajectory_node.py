@@ -205,8 +205,8 @@ def stamp_seconds(msg):
 
 
 def once_each(stances):
-    """[(receipt s, stance)] with a stance announced again (reached after a wait for its
-    contacts) kept once: its first receipt, its last message (stamped when reached)."""
+    """[(receipt s, stance)] with a stance announced again (reached late, or the last one
+    executed) kept once: its first receipt, its last message (stamped when reached)."""
     kept = []
     for at, msg in stances:
         if kept and kept[-1][1].index == msg.index:

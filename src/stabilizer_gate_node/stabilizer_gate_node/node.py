@@ -40,7 +40,8 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.time import Time
-from stance.execution.stabilizer import LearnedSurfaces, StabilizerGate, Transition, switch
+from stance.execution.stabilizer import (NOT_YET_REACHED, LearnedSurfaces, StabilizerGate,
+                                         Transition, switch)
 from stance.planning.scene import load_scene
 from stance.tasks import TargetError
 from stance_msgs.msg import ContactStance, StabilizerState, StancePlan
@@ -130,17 +131,18 @@ class StabilizerGateNode(Node):
         stamp = Time.from_msg(msg.header.stamp).nanoseconds * 1e-9
         last = self.transitions[-1] if self.transitions else None
         if last is not None and last.support.index == msg.index:
-            # announced again: reached, later than planned (its stamp)
-            self.transitions[-1] = dataclasses.replace(last, reached=now)
-            self.get_logger().info(f"active stance {msg.index} reached, "
-                                   f"{stamp - last.end:.2f} s after its planned end")
+            # announced again: the robot is there (a copy never delays a switch under way)
+            self.transitions[-1] = dataclasses.replace(last, reached=min(last.reached, now))
+            self.get_logger().info(f"active stance {msg.index} reached, stamped "
+                                   f"{stamp - last.end:+.2f} s from its planned end")
             return
         if last is not None:
-            # the next transition starts: the robot is at the stance before it
+            # the next transition starts: the one before is over (the robot at its stance,
+            # or moved to a new plan's first witness after a failed execution)
             self.transitions[-1] = dataclasses.replace(last, reached=min(last.reached, now))
             self._compare_with_plan(last.support, support)
         end = max(now, stamp)
-        self.transitions.append(Transition(support, now, end, reached=math.inf))
+        self.transitions.append(Transition(support, now, end, reached=NOT_YET_REACHED))
         self.get_logger().info(f"active stance {msg.index}: "
                                f"{'coplanar' if support.coplanar else 'non-coplanar'} support, "
                                f"transition over in {end - now:.2f} s as planned")

@@ -35,8 +35,9 @@ URDF speed limits; or time_optimal, also under `acceleration_limit`), then execu
   again, stamped when it was reached, with `executing: stance k reached after waiting ...`
   or `... reached X s late ...`, and the JointTrajectory goes out again with its start
   shifted by as much. The last stance executed (the plan's, or the one a newer plan takes
-  over at) goes out again when reached in any case: no next stance says that the robot is
-  there, which an ON switch of stabilizer_gate_node waits for.
+  over at) goes out again when reached in any case (stamped as planned if on time): no
+  next stance says that the robot is there, which an ON switch of stabilizer_gate_node
+  waits for.
 
 pik_node lost during execution (PikWatch on /pik/status: silent for `pik_status_timeout`
 s, or its cycle counter went back, i.e. a new process): streaming pauses at the current
@@ -47,10 +48,10 @@ until pik_node publishes again, for at most `pik_restart_timeout` s. A restarted
 transition i ...; resuming from the last commanded configuration`); the same process after
 a stall keeps its own. Streaming then resumes from that sample, the time base shifted by
 the pause (the JointTrajectory goes out again with its start shifted; the stance in
-progress, reached late by the pause, goes out again when reached: `executing: stance k
-reached X s late (streaming paused Y s for pik_node)`). If pik_node does not come back in time, or refuses the
-re-sent configuration or stack, the plan ends in `failed: execution stopped: pik_node ...`
-and the node waits for the next one.
+progress, late by the pause, goes out again when reached: `executing: stance k reached X
+s late (streaming paused Y s for pik_node)`). If pik_node does not come back in time, or
+refuses the re-sent configuration or stack, the plan ends in `failed: execution stopped:
+pik_node ...` and the node waits for the next one.
 
 A new plan while one executes: the current transition is finished (the robot is then at
 rest on a witness: every stance boundary is a contact event), then the new plan starts
@@ -429,8 +430,11 @@ class TrajectoryNode(Node):
         # inside the clock (0.1-0.3 s under load) left the robot that far behind at once
         self._call(self.set_stack_client, stack_request(stack))
         sent = stack                              # the stack pik_node holds
+        # built once, before the clock starts (sampling a long plan takes 0.1-0.2 s), then
+        # sent again restamped
+        timed = self._joint_trajectory(trajectory)
         start, began = self.get_clock().now(), time.monotonic()
-        self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
+        self._send_timed(timed, start)
         self._publish_active(msg, 0, start, 0.0)
         due = self._publish_active(msg, 1, start, boundaries[1])
         paused = 0.0   # s streaming paused in the current transition (pik_node lost)
@@ -447,12 +451,12 @@ class TrajectoryNode(Node):
                     raise PikLost(lost)
                 self._stream(trajectory.sample(t)[0], stack, held)
             except PikLost as lost:
+                lost_at = time.monotonic()
                 sent = self._recover(str(lost), transition, t, trajectory, stack, sent)
                 began, next_tick = time.monotonic() - t, time.monotonic()
-                resumed = self.get_clock().now() - Duration(seconds=t)
-                paused += (resumed - start).nanoseconds * 1e-9
-                start = resumed
-                self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
+                paused += next_tick - lost_at
+                start = self.get_clock().now() - Duration(seconds=t)
+                self._send_timed(timed, start)
                 # waiting starts over with the new process
                 gate = self._gate(gate.targets, gate.com)
                 continue
@@ -465,13 +469,22 @@ class TrajectoryNode(Node):
                 now = self.get_clock().now()
                 late = (now - due).nanoseconds * 1e-9    # after the stamp announced
                 superseded = transition < last and self._has_pending()
-                if gate.waiting_since is not None or late > LATE_STANCE:
+                why_late = self._why_late(gate, late, paused) \
+                    if gate.waiting_since is not None or late > LATE_STANCE else None
+                if why_late:
                     start = now - Duration(seconds=end)
-                    self._reached_late(msg, transition, gate, trajectory, start, end, late,
-                                       paused)
-                elif transition == last or superseded:
-                    # no next stance announces that the robot is there (stabilizer gate)
+                if why_late or transition == last or superseded:
+                    # again: stamped when reached if late, and where no next stance
+                    # follows at once, what tells the stabilizer gate the robot is there
                     self._publish_active(msg, transition + 1, start, end)
+                if transition < last and not superseded:
+                    # the next transition starts: announced right away, so that the
+                    # stabilizer gate sees a switch on at this end with one off at its start
+                    due = self._publish_active(msg, transition + 2, start,
+                                               boundaries[transition + 2])
+                if why_late:
+                    self._send_timed(timed, start)
+                    self._status("executing", f"stance {transition + 1} reached {why_late}")
                 if transition == last:
                     self._status("done", f"reached stance {len(plan.stances) - 1} of scene "
                                          f"{plan.scene!r}")
@@ -483,8 +496,6 @@ class TrajectoryNode(Node):
                     return
                 transition += 1
                 stack, held, gate = self._transition(scene, planner, plan, transition)
-                due = self._publish_active(msg, transition + 1, start,
-                                           boundaries[transition + 1])
                 paused = 0.0
             next_tick += self.period
             time.sleep(max(next_tick - time.monotonic(), 0.0))
@@ -517,22 +528,16 @@ class TrajectoryNode(Node):
                                  f"{1e3 * gate.com_tolerance:g} mm)")
         return False
 
-    def _reached_late(self, msg, transition, gate, trajectory, start, end, late, paused):
-        """Stance transition + 1, reached `late` s after its stamp (a wait for the robot,
-        late ticks, streaming `paused` s for a lost pik_node): announce it again stamped
-        now, and the JointTrajectory with its start shifted by as much (time base:
-        `start`)."""
-        self._publish_active(msg, transition + 1, start, end)
-        self.trajectory_pub.publish(self._joint_trajectory(trajectory, start))
+    def _why_late(self, gate, late, paused) -> str:
+        """Why the stance `gate` awaited was reached `late` s after its stamp, for the status
+        (a wait for the robot, streaming `paused` s for a lost pik_node, late ticks)."""
         pause = f"streaming paused {paused:.2f} s for pik_node" if paused else ""
         if gate.waiting_since is not None:
             waited = (f"waiting {gate.waited(time.monotonic()):.2f} s for the robot to arrive "
                       f"({gate.describe_late(gate.late_when_due)} when due)")
-            why = f"after {pause + ' and ' if pause else ''}{waited}"
-        else:
-            why = (f"{late:.2f} s late ("
-                   f"{pause or 'late ticks: trajectory_node starved, the motion slowed'})")
-        self._status("executing", f"stance {transition + 1} reached {why}")
+            return f"after {pause + ' and ' if pause else ''}{waited}"
+        return (f"{late:.2f} s late ("
+                f"{pause or 'late ticks: trajectory_node starved, the motion slowed'})")
 
     def _recover(self, reason, transition, t, trajectory, stack, sent):
         """Streaming paused at sample time t (s): wait up to pik_restart_timeout s for
@@ -609,10 +614,15 @@ class TrajectoryNode(Node):
         self.active_stance_pub.publish(stance)
         return stamp
 
-    def _joint_trajectory(self, trajectory, start) -> JointTrajectory:
-        """The timed plan at its samples' times: actuated 1-DoF joints (rad, rad/s)."""
-        msg = JointTrajectory(header=Header(stamp=start.to_msg(), frame_id="world"),
-                              joint_names=self._joints)
+    def _send_timed(self, timed: JointTrajectory, start):
+        """Publish the timed plan (_joint_trajectory) starting at `start` (rclpy Time)."""
+        timed.header.stamp = start.to_msg()
+        self.trajectory_pub.publish(timed)
+
+    def _joint_trajectory(self, trajectory) -> JointTrajectory:
+        """The timed plan at its samples' times: actuated 1-DoF joints (rad, rad/s); its
+        header stamp (the start) is set when sent."""
+        msg = JointTrajectory(header=Header(frame_id="world"), joint_names=self._joints)
         for t in trajectory.times:
             q, v = trajectory.sample(float(t))
             msg.points.append(JointTrajectoryPoint(

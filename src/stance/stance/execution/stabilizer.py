@@ -43,6 +43,8 @@ from ..planning.equilibrium import are_coplanar
 from ..planning.scene import ContactSpot, Surface
 
 START, END = "start", "end"        # which end of the transition into a stance a switch is at
+# Transition.reached: not known yet (an END switch waits), or the planned end is trusted
+NOT_YET_REACHED, PLANNED_END_TRUSTED = math.inf, -math.inf
 COM_POLYGON = "com_polygon"                  # balance mode while the stabilizer is on
 STATIC_EQUILIBRIUM = "static_equilibrium"    # balance mode while it is off
 
@@ -75,14 +77,15 @@ class Transition:
 
     reached: when the robot was known to be at the stance (s). A switch at the END of the
     transition waits for it (at max(end, reached)): a robot late on its plan is still
-    releasing the contact at the planned end. -inf (default) trusts the planned end; +inf
-    while not known yet (the switch is pending).
+    releasing the contact at the planned end. NOT_YET_REACHED: the switch is pending (only
+    the last transition of a list may be); PLANNED_END_TRUSTED (default): at the planned
+    end.
     """
 
     support: Support
     start: float
     end: float
-    reached: float = -math.inf
+    reached: float = PLANNED_END_TRUSTED
 
     def switch_time(self, at: str) -> float:
         """When a switch at the START or END (`at`) of this transition happens (s)."""
