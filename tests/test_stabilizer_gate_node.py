@@ -1,12 +1,14 @@
 """stabilizer_gate_node over DDS in its own process: active stances switch the state as the
 paper's rule says (off at the start of the transition creating the hand contact, on at the
 end of the one releasing it) with a continuous blend; bad stances are rejected and the state
-kept; a plan is scheduled ahead; bad parameters end the node with exit code 1."""
+kept; a plan is scheduled ahead; in the graph, a late release followed by a new contact
+never switches on; bad parameters end the node with exit code 1."""
 
 import math
 import os
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +23,8 @@ from stance_msgs.msg import ContactStance, StabilizerState, StancePlan
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CHAIR_PLAN = Path(__file__).resolve().parent.parent / "docs" / "figures" / \
+    "chair_table_plan.json"
 RAMP = 0.3   # s
 RATE = 50.0  # Hz
 FEET = (Contact("left_sole", "floor", 0.0, 0.1, 0.0),
@@ -233,6 +237,55 @@ def test_plan_is_scheduled_and_unknown_surfaces_are_rejected_with_a_scene(proces
                    what="the plan mismatch warning")
     finally:
         probe.close()
+
+
+def test_a_late_release_then_a_new_contact_never_switches_on_in_the_graph(processes):
+    """Four stances of the chair plan: the right hand leaves the support (stance 1: the
+    rule switches on at the end of that transition) and the next transition makes a
+    non-coplanar contact (stance 2: off at its start), so the stabilizer is on for no time.
+    pik_node made to lag (contact and CoM gains 0.02) reaches every stance late: stance 1 is
+    announced again when reached, stance 2 at once, and the gate never ramps on in between
+    (it used to: on from stance 1's planned end, or while trajectory_node rebuilt its
+    JointTrajectory, until stance 2 came; blend 0.39 in a loaded chair demo). pik_node,
+    trajectory_node and the gate on the scene, in another DDS domain."""
+    from stance import Robot
+    from stance.execution.stabilizer import END, START, StabilizerGate
+    from stance.planning.contacts import Plan, load_plan
+    from test_trajectory_node import STEPS, TrajectoryProbe, plan_msg, reannounced
+
+    robot, full = Robot.load("talos"), load_plan(CHAIR_PLAN)
+    chair = load_scene("chair_table", robot)
+    short = Plan(full.scene, full.robot, full.stances[61:65])
+    events = StabilizerGate(chair).schedule([stance.contacts for stance in short.stances])
+    assert [(e.stance_index, e.at, e.enabled) for e in events] == \
+        [(1, END, True), (2, START, False)]
+    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200
+    env = {"ROS_DOMAIN_ID": str(domain)}
+    processes.start("pik_node", name="pik_node", env=env)
+    processes.start("trajectory_node", "--ros-args", "-p", "contact_gain:=0.02", "-p",
+                    "com_gain:=0.02", "-p", f"samples_per_transition:={STEPS}",
+                    name="trajectory_node", env=env)
+    processes.start("stabilizer_gate_node", "--ros-args", "-p", "scene:=chair_table", "-p",
+                    f"rate:={RATE}", name="stabilizer_gate_node", env=env)
+    probe = TrajectoryProbe("chair_probe", domain)
+    states = GateProbe("chair_gate_probe", domain)
+    try:
+        wait_until(lambda: probe.joint_state is not None and probe.statuses, 120,
+                   what="pik_node's joint states and trajectory_node's status")
+        counts = probe.counts()
+        probe.publish_plan(plan_msg(robot, chair, short))
+        statuses = probe.wait_status(counts, "done", 180)
+        time.sleep(3.0 / RATE)
+        published = states.states_since(0)
+    finally:
+        probe.close()
+        states.close()
+    assert 1 in reannounced(statuses), statuses     # the release stance was reached late
+    executed = [s for s in published if s.stance_index >= 1]
+    assert executed and executed[-1].stance_index == 3
+    assert max(s.blend for s in published) < 0.01
+    # on for one state at most (the gate's timer between the two announcements)
+    assert not any(a.enabled and b.enabled for a, b in zip(published, published[1:]))
 
 
 @pytest.mark.parametrize("parameter, reason", [

@@ -431,7 +431,8 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
         assert set(created[k]) | {"com"} == {part.split()[0] for part in late.split("; ")}
         assert all(offset > tolerance[name] for name, offset in offsets(k, due).items())
         assert all(offset <= tolerance[name] + 1e-4
-                   for name, offset in offsets(k, reached).items()), status
+                   for name, offset in offsets(k, reached).items()), \
+            (status, offsets(k, reached))
 
 
 def test_a_starved_trajectory_node_slows_the_motion_instead_of_skipping_it(processes,
