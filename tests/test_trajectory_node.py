@@ -30,7 +30,7 @@ from sensor_msgs.msg import JointState
 from stance.execution.interpolation import TransitionPlanner
 from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
 from stance.execution.tracking import (ARRIVAL_COM_TOLERANCE, ARRIVAL_TOLERANCE, GAINS,
-                                       transition_tasks, witness_com)
+                                       ArrivalGate, transition_tasks, witness_com)
 from stance.planning.collision import CollisionModel
 from stance.planning.contacts import Plan
 from stance_msgs.msg import ContactStance, SolverStatus, StancePlan
@@ -38,7 +38,7 @@ from stance_tools.check_run import command_times
 from stance_tools.processes import ProcessGroup
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
-from trajectory_node.node import MAX_TICK_ADVANCE, STATUS_HISTORY
+from trajectory_node.node import MAX_TICK_ADVANCE, STATUS_HISTORY, late_reason
 
 STEPS = 10               # samples_per_transition
 JOINT_TOLERANCE = 0.05   # rad: pik_node's joints against the plan's last witness
@@ -523,6 +523,21 @@ def test_a_stance_not_reached_in_time_stops_the_execution_and_says_what_is_late(
     assert late > 1e3 * ARRIVAL_COM_TOLERANCE, failure
     assert not any(status.startswith("done:") for status in statuses), statuses
     assert pik.poll() is None and node.poll() is None
+
+
+def test_a_late_stance_names_what_held_it():
+    """late_reason: a slow set_stack call and a pik_node pause are named with their
+    durations; late ticks only for the lateness they do not explain."""
+    gate = ArrivalGate({}, com=None)
+    assert late_reason(gate, 0.3, 0.0, 0.0) == \
+        "0.30 s late (late ticks: trajectory_node starved, the motion slowed)"
+    assert late_reason(gate, 0.3, 0.0, 0.28) == \
+        "0.30 s late (streaming held 0.28 s by the /pik/set_stack call)"
+    assert late_reason(gate, 0.5, 0.0, 0.2) == ("0.50 s late (streaming held 0.20 s by the "
+                                                "/pik/set_stack call; late ticks: "
+                                                "trajectory_node starved, the motion slowed)")
+    assert late_reason(gate, 1.42, 1.4, 0.005) == \
+        "1.42 s late (streaming paused 1.40 s for pik_node)"
 
 
 def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(processes,

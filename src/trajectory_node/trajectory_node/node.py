@@ -31,9 +31,10 @@ URDF speed limits; or time_optimal, also under `acceleration_limit`), then execu
 - a late tick (the node starved under load) advances the trajectory's time by
   MAX_TICK_ADVANCE periods at most: the motion slows down instead of the targets jumping
   ahead along the path;
-- a stance reached more than LATE_STANCE s after its stamp (a wait, late ticks) goes out
-  again, stamped when it was reached, with `executing: stance k reached after waiting ...`
-  or `... reached X s late ...`, and the JointTrajectory goes out again with its start
+- a stance reached more than LATE_STANCE s after its stamp (a wait, late ticks, a slow
+  /pik/set_stack call) goes out again, stamped when it was reached, with `executing:
+  stance k reached after waiting ...` or `... reached X s late (<causes>)` (late_reason),
+  and the JointTrajectory goes out again with its start
   shifted by as much. The last stance executed (the plan's, or the one a newer plan takes
   over at) goes out again when reached in any case (stamped as planned if on time): no
   next stance says that the robot is there, which an ON switch of stabilizer_gate_node
@@ -141,6 +142,7 @@ SLOW_CALL = 0.1      # s: a pik_node call answered later than this is logged (th
 # then go straight to where its swing should be, along the ground)
 MAX_TICK_ADVANCE = 2.0
 LATE_STANCE = 0.05   # s: a stance reached this much after its stamp is announced again
+CALL_NOTED = 0.01    # s: a set_stack call holding streaming this long is named when late
 TIMINGS = ("sinusoidal", "time_optimal")
 
 
@@ -438,13 +440,16 @@ class TrajectoryNode(Node):
         self._publish_active(msg, 0, start, 0.0)
         due = self._publish_active(msg, 1, start, boundaries[1])
         paused = 0.0   # s streaming paused in the current transition (pik_node lost)
+        held_by_call = 0.0   # s streaming waited in the current transition for set_stack
         self._status("executing", f"{len(plan.stances)} stances in {trajectory.duration:.2f} "
                                   f"s ({self.timing})")
         transition, last, t, next_tick = 0, len(plan.stances) - 2, 0.0, began
         while not self._stop.is_set():
             try:
                 if stack != sent:
+                    called_at = time.monotonic()
                     self._call(self.set_stack_client, stack_request(stack))
+                    held_by_call += time.monotonic() - called_at
                     sent = stack
                 lost = self._pik.lost()
                 if lost:
@@ -469,7 +474,7 @@ class TrajectoryNode(Node):
                 now = self.get_clock().now()
                 late = (now - due).nanoseconds * 1e-9    # after the stamp announced
                 superseded = transition < last and self._has_pending()
-                why_late = self._why_late(gate, late, paused) \
+                why_late = late_reason(gate, late, paused, held_by_call) \
                     if gate.waiting_since is not None or late > LATE_STANCE else None
                 if why_late:
                     start = now - Duration(seconds=end)
@@ -496,7 +501,7 @@ class TrajectoryNode(Node):
                     return
                 transition += 1
                 stack, held, gate = self._transition(scene, planner, plan, transition)
-                paused = 0.0
+                paused = held_by_call = 0.0
             next_tick += self.period
             time.sleep(max(next_tick - time.monotonic(), 0.0))
             now = time.monotonic()
@@ -527,17 +532,6 @@ class TrajectoryNode(Node):
                                  f"{gate.tolerance[1]:g} rad, CoM "
                                  f"{1e3 * gate.com_tolerance:g} mm)")
         return False
-
-    def _why_late(self, gate, late, paused) -> str:
-        """Why the stance `gate` awaited was reached `late` s after its stamp, for the status
-        (a wait for the robot, streaming `paused` s for a lost pik_node, late ticks)."""
-        pause = f"streaming paused {paused:.2f} s for pik_node" if paused else ""
-        if gate.waiting_since is not None:
-            waited = (f"waiting {gate.waited(time.monotonic()):.2f} s for the robot to arrive "
-                      f"({gate.describe_late(gate.late_when_due)} when due)")
-            return f"after {pause + ' and ' if pause else ''}{waited}"
-        return (f"{late:.2f} s late ("
-                f"{pause or 'late ticks: trajectory_node starved, the motion slowed'})")
 
     def _recover(self, reason, transition, t, trajectory, stack, sent):
         """Streaming paused at sample time t (s): wait up to pik_restart_timeout s for
@@ -680,6 +674,23 @@ def _require_verified(plan, scene, robot, shown: int = 3) -> None:
     if failures:
         more = f" (and {len(failures) - shown} more)" if len(failures) > shown else ""
         raise PlanRejected(f"fails verification: {'; '.join(failures[:shown])}{more}")
+
+
+def late_reason(gate, late, paused, held_by_call) -> str:
+    """Why the stance `gate` awaited was reached `late` s after its stamp, for the status:
+    a wait for the robot, streaming `paused` s for a lost pik_node, or `held_by_call` s
+    by the set_stack call that started the transition, late ticks for the rest."""
+    pause = f"streaming paused {paused:.2f} s for pik_node" if paused else ""
+    if gate.waiting_since is not None:
+        waited = (f"waiting {gate.waited(time.monotonic()):.2f} s for the robot to arrive "
+                  f"({gate.describe_late(gate.late_when_due)} when due)")
+        return f"after {pause + ' and ' if pause else ''}{waited}"
+    causes = [pause] if pause else []
+    if held_by_call > CALL_NOTED:
+        causes.append(f"streaming held {held_by_call:.2f} s by the /pik/set_stack call")
+    if not causes or late - paused - held_by_call > LATE_STANCE:
+        causes.append("late ticks: trajectory_node starved, the motion slowed")
+    return f"{late:.2f} s late ({'; '.join(causes)})"
 
 
 def main(args=None):
