@@ -142,7 +142,7 @@ SLOW_CALL = 0.1      # s: a pik_node call answered later than this is logged (th
 # then go straight to where its swing should be, along the ground)
 MAX_TICK_ADVANCE = 2.0
 LATE_STANCE = 0.05   # s: a stance reached this much after its stamp is announced again
-CALL_NOTED = 0.01    # s: a set_stack call holding streaming this long is named when late
+NOTED_DELAY = 0.01   # s: a cause of a stance's lateness this long is named in its status
 TIMINGS = ("sinusoidal", "time_optimal")
 
 
@@ -686,10 +686,13 @@ def late_reason(gate, late, paused, held_by_call) -> str:
                   f"({gate.describe_late(gate.late_when_due)} when due)")
         return f"after {pause + ' and ' if pause else ''}{waited}"
     causes = [pause] if pause else []
-    if held_by_call > CALL_NOTED:
+    if held_by_call > NOTED_DELAY:
         causes.append(f"streaming held {held_by_call:.2f} s by the /pik/set_stack call")
-    if not causes or late - paused - held_by_call > LATE_STANCE:
+    rest = late - paused - held_by_call
+    if not causes:
         causes.append("late ticks: trajectory_node starved, the motion slowed")
+    elif rest > NOTED_DELAY:
+        causes.append(f"late ticks {rest:.2f} s: trajectory_node starved, the motion slowed")
     return f"{late:.2f} s late ({'; '.join(causes)})"
 
 
