@@ -34,11 +34,10 @@ URDF speed limits; or time_optimal, also under `acceleration_limit`), then execu
 - a stance reached more than LATE_STANCE s after its stamp (a wait, late ticks, a slow
   /pik/set_stack call) goes out again, stamped when it was reached, with `executing:
   stance k reached after waiting ...` or `... reached X s late (<causes>)` (late_reason),
-  and the JointTrajectory goes out again with its start
-  shifted by as much. The last stance executed (the plan's, or the one a newer plan takes
-  over at) goes out again when reached in any case (stamped as planned if on time): no
-  next stance says that the robot is there, which an ON switch of stabilizer_gate_node
-  waits for.
+  and the JointTrajectory goes out again with its start shifted by as much. The last
+  stance executed (the plan's, or the one a newer plan takes over at) goes out again when
+  reached in any case (stamped as planned if on time): no next stance says that the robot
+  is there, which an ON switch of stabilizer_gate_node waits for.
 
 pik_node lost during execution (PikWatch on /pik/status: silent for `pik_status_timeout`
 s, or its cycle counter went back, i.e. a new process): streaming pauses at the current
