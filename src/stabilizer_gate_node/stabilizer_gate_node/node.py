@@ -129,17 +129,16 @@ class StabilizerGateNode(Node):
             return
         now = self.get_clock().now().nanoseconds * 1e-9
         stamp = Time.from_msg(msg.header.stamp).nanoseconds * 1e-9
-        last = self.transitions[-1] if self.transitions else None
-        if last is not None and last.support.index == msg.index:
-            # announced again: the robot is there (a copy never delays a switch under way)
+        if self.transitions:
+            # the last stance announced again, or the next one: the robot is at the last
+            # one (or at a new plan's first witness after a failed execution); an earlier
+            # confirmation is kept, so that a copy never delays a switch under way
+            last = self.transitions[-1]
             self.transitions[-1] = dataclasses.replace(last, reached=min(last.reached, now))
-            self.get_logger().info(f"active stance {msg.index} reached, stamped "
-                                   f"{stamp - last.end:+.2f} s from its planned end")
-            return
-        if last is not None:
-            # the next transition starts: the one before is over (the robot at its stance,
-            # or moved to a new plan's first witness after a failed execution)
-            self.transitions[-1] = dataclasses.replace(last, reached=min(last.reached, now))
+            if last.support.index == msg.index:
+                self.get_logger().info(f"active stance {msg.index} reached, stamped "
+                                       f"{stamp - last.end:+.2f} s from its planned end")
+                return
             self._compare_with_plan(last.support, support)
         end = max(now, stamp)
         self.transitions.append(Transition(support, now, end, reached=NOT_YET_REACHED))

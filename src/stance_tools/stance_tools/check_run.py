@@ -6,10 +6,10 @@ The bag must hold /joint_states and /pik/base_pose (pik_node, same header stamps
 /stabilizer/state (stabilizer_gate_node); the last execution in the bag (from the last
 active stance 0 on) is checked. Times are header stamps (s); stance k is reached at its
 active stance's stamp (the last one when trajectory_node announced it again: reached late
-after waiting for the robot, late ticks or a pik_node pause, or the last stance executed),
-and the transition k -> k + 1 runs from stance k's stamp to stance k + 1's: the
-trajectory's pace from the start, then its end sample until stance k + 1 is reached
-(command_times). Positions are in the world frame (m), joints in rad.
+after waiting for the robot, late ticks, a pik_node pause or a slow set_stack call, or the
+last stance executed), and the transition k -> k + 1 runs from stance k's stamp to stance
+k + 1's: the trajectory's pace from the start, then its end sample until stance k + 1 is
+reached (command_times). Positions are in the world frame (m), joints in rad.
 
 Checks (one table each):
 - contacts: every contact's spot (forward kinematics of the joint states and base pose)
