@@ -245,16 +245,23 @@ def test_talos_repeated_steps_are_reproducible(talos):
     assert np.array_equal(results[0].dq, results[1].dq)
 
 
-def test_proxsuite_work_per_level_is_bounded(talos):
-    """The issue's stack with both hands reaching into the torso's and wrists' limits: the
-    clamped posture level's bound sets are degenerate (many of zero width), where a warm
-    start capped in outer iterations only once ran 4,500 inner ones (120 ms). A level's
-    QP, warm start and cold fallback together, stays within the caps."""
-    start = bench_start(talos)
-    contender = next(contender for contender in level_contenders(
-        talos, TALOS_LEVEL_STACK, start, HANDS_FORWARD, 0.002, (4,))
+def four_level_qp_contender(robot, start):
+    """The issue's stack (feet > CoM > both hands > posture) on the QP hierarchy, both
+    hands reaching into the torso's and wrists' limits (stance bench levels)."""
+    return next(contender for contender in level_contenders(
+        robot, TALOS_LEVEL_STACK, start, HANDS_FORWARD, 0.002, (4,))
         if contender.name.startswith("qp"))
+
+
+def test_proxsuite_work_per_level_is_bounded(talos):
+    """The clamped posture level's bound sets are degenerate (many of zero width), where a
+    warm start capped in outer iterations only once ran 4,500 inner ones (120 ms). Every
+    level through ProxSuite (no hot start): a level's QP, warm start and cold fallback
+    together, stays within the caps."""
+    start = bench_start(talos)
+    contender = four_level_qp_contender(talos, start)
     hierarchy = contender.solver.hierarchy
+    hierarchy.hot_start = False
     solve, spent = hierarchy._qp_solve, []
 
     def counted(*args):
@@ -270,3 +277,22 @@ def test_proxsuite_work_per_level_is_bounded(talos):
     assert len(spent) > 100 and hierarchy.cold_starts > 0   # the bounds did bind
     assert max(spent) <= (WARM_MAX_ITERATIONS + COLD_MAX_ITERATIONS) * INNER_MAX_ITERATIONS
     assert limit_excess(talos, q) == 0.0
+
+
+def test_hot_start_takes_the_same_steps_with_few_proxsuite_solves(talos):
+    """From the same configurations (open loop), the hot-started hierarchy takes ProxSuite's
+    steps (the KKT point is unique) and names the same binding bounds, while ProxSuite
+    solves under a tenth of the levels whose bounds cross (the active set changes little
+    from one step to the next)."""
+    start = bench_start(talos)
+    hot, cold = four_level_qp_contender(talos, start), four_level_qp_contender(talos, start)
+    cold.solver.hierarchy.hot_start = False
+    q = start
+    for _ in range(140):
+        expected, result = cold.solver.step(q), hot.solver.step(q)
+        np.testing.assert_allclose(result.dq, expected.dq, rtol=0, atol=1e-9)
+        assert result.binding_constraints == expected.binding_constraints
+        q = expected.q
+    crossed = cold.solver.hierarchy.qp_solves
+    assert crossed > 100 and hot.solver.hierarchy.hot_starts > 0.9 * crossed
+    assert hot.solver.hierarchy.qp_solves < 0.1 * crossed

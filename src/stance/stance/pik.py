@@ -258,6 +258,8 @@ class PIKSolver:
                                     np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv))
         for model in self.limit_models[1:]:
             model.warm_up(q)
+        if hasattr(self.hierarchy, "warm_up"):   # QPHierarchy: kernels of binding bounds
+            self.hierarchy.warm_up()
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""

@@ -1,4 +1,4 @@
-"""Strict task priorities under per-DoF bounds on dq: a cascade of small ProxSuite QPs.
+"""Strict task priorities under per-DoF bounds on dq: a cascade of small QPs (ProxSuite).
 
 Same levels and damping as DampedHierarchy, plus bounds lower <= dq <= upper (rad or m:
 joint limits and velocity limits over one step). Level i works in the orthonormal basis Z
@@ -20,27 +20,40 @@ the result is then DampedHierarchy's (to rounding). So DampedHierarchy's compile
 comes first, and when every level's dq respects the bounds (most steps: progressive
 clamping keeps joints off their limits) its solution is the answer, restart state
 included (a re-solve of the clamping loop then restarts where it can); the cascade below
-runs only when a level crosses a bound. Otherwise a persistent ProxSuite dense
-QP (one per level and size) is updated and warm-started from its previous result, cold
-started when that fails, to eps_abs 1e-9 within a bounded number of iterations (outer and
-inner: ProxSuite's max_iter alone caps only the outer ones, and a warm start once ran
-4,500 inner iterations, 120 ms). Its duals then seed the polish: the problem with the
-active bounds they show as equalities is solved exactly and kept when nonnegative
-multipliers exist (a KKT certificate that makes the result independent of the warm start
-and of how far ProxSuite got; a few active set corrections are tried). Where the polish
-finds no KKT point, an exact primal active-set method from y = 0 gives the level's step.
+runs only when a level crosses a bound. It is compiled (numba) but for ProxSuite.
+
+A level that crosses a bound is first polished from its hot start, the active set it
+ended with last time (kept by DoF: the clamping loop re-solves each step once or twice, and
+the set changes little from one step to the next). The polish solves the problem with the
+active bounds as equalities exactly (nullspace method on a pivoted QR of the active rows)
+and keeps the result when it is a KKT point: no bound violated, multipliers of the right
+sign (by NNLS at a degenerate vertex, where more bounds are active than y has variables).
+Otherwise it corrects the set (the most violated bound joins, the worst wrong-sign one
+leaves) a bounded number of times. The KKT point is unique (the objective is strictly
+convex), so the result does not depend on where the polish started.
+
+Where the hot start fails (or there is none) a persistent ProxSuite dense QP (one per
+level and size) is updated and warm-started from its previous result, cold started when
+that fails, to eps_abs 1e-9 within a bounded number of iterations (outer and inner:
+ProxSuite's max_iter alone caps only the outer ones, and a warm start once ran 4,500 inner
+iterations, 120 ms). Its duals seed the polish; where that finds no KKT point either, an
+exact primal active-set method from y = 0 gives the level's step. The active set found is
+kept for the next hot start, and the compiled cascade solves the level again from it, so
+that a level's step comes out of the same code, hence the same bits, whichever way its
+active set was found.
 """
 
 from __future__ import annotations
 
 import weakref
 
+import numba
 import numpy as np
-import scipy.optimize
 from proxsuite import proxqp
 
-from .hierarchy import (DampedHierarchy, HierarchySolution, _damped_least_squares,
-                        _nullspace_update, stack_levels)
+from .hierarchy import (REORDERING, DampedHierarchy, HierarchySolution, Level, _damped_gram,
+                        _damped_least_squares, _nullspace_update, _sparse_rows_product,
+                        _spd_solve, _times, stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
 # ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
@@ -50,14 +63,18 @@ WARM_MAX_ITERATIONS = 10     # a warm start needing more is abandoned for a cold
 COLD_MAX_ITERATIONS = 100
 INNER_MAX_ITERATIONS = 10
 FEASIBILITY_SLACK = 1e-12    # rad or m: polished y may exceed a bound by this much
-MULTIPLIER_SLACK = 1e-9      # relative to |gradient|: tolerated wrong-sign multiplier
-POLISH_ROUNDS = 8            # active set corrections tried by the polish
+MULTIPLIER_SLACK = 1e-12     # relative to |gradient|: tolerated wrong-sign multiplier; it can
+#                              move the optimum by up to itself / damping^2 where only the
+#                              damping weighs (1e-9 let two certified answers differ by 6e-4)
+POLISH_ROUNDS = 16           # active set corrections tried by the polish
 ACTIVE_SET_ITERATIONS = 4    # x (variables + bound rows): cap of the exact active-set solve
 STEP_TOLERANCE = 1e-13       # relative: an active-set step this small is a stationary point
 BINDING_TOLERANCE = 1e-9     # rad or m: a dq this close to a bound is on it
-RANK_RELATIVE = 1e-12        # active bound rows: singular values below this x largest drop
+RANK_RELATIVE = 1e-12        # active bound rows: a pivoted QR remainder (polish) or singular
+#                              value (exact active-set solve) below this x the largest drops
 MOVABLE_ROW_NORM = 1e-12     # a DoF whose basis row is below this cannot move any more
 MAX_CACHED_QPS = 64          # persistent QPs kept (level, variables, bound rows)
+NO_KKT_POINT, CERTIFIED, FREE = 0, 1, 2  # level outcomes: _polish's two, no bound crossed
 
 
 def robot_dof_names(robot) -> list:
@@ -94,12 +111,16 @@ class QPHierarchy:
     dof_names: a name per velocity DoF for the binding constraint report (default dof<i>).
     velocity_steps: |dq| bound per DoF from velocity limits (rad or m, inf if none); a bound
         equal to it is reported as "<dof> velocity" rather than "<dof> lower/upper".
+    hot_start: a level whose bounds cross first tries the active set it ended with last
+        time (certified by its KKT conditions, so the answer does not depend on it); off,
+        every such level starts from ProxSuite.
     """
 
     uses_bounds = True
 
     def __init__(self, damping: float = 1e-3, rank_tolerance: float = 1e-9, dof_names=None,
-                 velocity_steps=None):
+                 velocity_steps=None, hot_start: bool = True):
+        self.hot_start = hot_start
         self.damping = damping
         self.rank_tolerance = rank_tolerance
         self.dof_names = None if dof_names is None else list(dof_names)
@@ -110,10 +131,13 @@ class QPHierarchy:
         # ProxSuite objects still alive when the interpreter exits make nanobind report
         # them as leaks: drop them first (atexit runs before modules are torn down)
         weakref.finalize(self, self._qps.clear)
-        self.qp_solves = 0        # levels that needed a QP, since construction
+        self.qp_solves = 0        # levels ProxSuite solved (hot start failed or off)
         self.cold_starts = 0      # of which warm start failed or no QP of that size existed
         self.unpolished = 0       # of which the polish found no KKT point (solved exactly)
         self.qp_iterations = 0    # ProxSuite's inner iterations, warm and cold solves
+        self._counters = np.zeros(1, dtype=np.int64)  # [hot starts], filled when compiled
+        self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: kept active sets
+        self._known_sides = np.zeros(0, dtype=np.bool_)
 
     @classmethod
     def for_robot(cls, robot, dt: float | None = None, **options) -> QPHierarchy:
@@ -146,55 +170,70 @@ class QPHierarchy:
 
     def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper):
         """The level by level solve of the module docstring (free: bool (nv), the DoFs not
-        in fixed_index; lower, upper: bounds (nv each))."""
+        in fixed_index; lower, upper: bounds (nv each)): compiled, but for the levels whose
+        hot start fails, which ProxSuite solves here."""
         nv = jacobian.shape[1]
         dq = np.clip(np.zeros(nv), lower, upper)
         dq[np.asarray(fixed_index, dtype=int)] = fixed_dq
         bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
-        basis = np.eye(nv)[:, free]
+        basis = np.ascontiguousarray(np.eye(nv)[:, free])  # one compiled layout
         level_count = len(offsets) - 1
+        if self._active_sides.shape != (level_count, nv):
+            self._active_sides = np.zeros((level_count, nv), dtype=np.int8)
+            self._known_sides = np.zeros(level_count, dtype=np.bool_)
+        if not self.hot_start:
+            self._known_sides[:] = False
         residuals = np.zeros(level_count)
         enforced = np.zeros(nv, dtype=bool)
-        damping_sq = self.damping * self.damping
-        for level in range(level_count):
-            rows = jacobian[offsets[level]:offsets[level + 1]]
-            wanted = target[offsets[level]:offsets[level + 1]]
-            if basis.shape[1] and len(rows):
-                projected = rows @ basis
-                step, active = self._level_step(level, projected, wanted - rows @ dq, basis,
-                                                dq, bounded, lower, upper, damping_sq)
-                dq += basis @ step
-                enforced[active] = True
-                if level < level_count - 1:
-                    basis = _nullspace_update(projected, basis, self.rank_tolerance)
-            residuals[level] = np.linalg.norm(wanted - rows @ dq)
-        return HierarchySolution(dq=dq, step_residuals=residuals,
-                                 binding=self._binding_names(dq, enforced, lower, upper))
+        level, given_step, given_dofs = 0, np.zeros(0), np.zeros(0, dtype=np.int64)
+        while True:
+            level, basis, projected, residual = _cascade_levels(
+                jacobian, target, offsets, level, dq, basis, bounded, lower, upper,
+                self._active_sides, self._known_sides, enforced, residuals, self._counters,
+                self.damping, self.rank_tolerance, given_step, given_dofs)
+            if level == level_count:
+                return HierarchySolution(dq=dq, step_residuals=residuals,
+                                         binding=self._binding_names(dq, enforced, lower,
+                                                                     upper))
+            given_step, given_dofs = self._qp_level_step(level, projected, residual, basis,
+                                                         dq, bounded, lower, upper)
 
-    def _level_step(self, level, projected, residual, basis, dq, bounded, lower, upper,
-                    damping_sq):
-        """(y, DoFs whose bounds the level's QP enforced) for one level."""
-        step = _damped_least_squares(projected, residual, damping_sq)
-        if not len(bounded):
-            return step, bounded
-        moving = np.linalg.norm(basis[bounded], axis=1) > MOVABLE_ROW_NORM
-        dofs = bounded[moving]
-        rows = basis[dofs]
-        # y = 0 stays feasible: a DoF a QP left a hair outside may not go further out
-        low = np.minimum(lower[dofs] - dq[dofs], 0.0)
-        high = np.maximum(upper[dofs] - dq[dofs], 0.0)
-        reach = rows @ step
-        if np.all((reach >= low) & (reach <= high)):
-            return step, dofs[:0]
+    def warm_up(self) -> None:
+        """Compile (or load from numba's disk cache) the cascade's kernels, by a throwaway
+        hierarchy solving a small problem whose bounds bind (first through ProxSuite, then
+        hot-started): compiling takes seconds, which a real-time loop must not pay at the
+        first step where a bound binds."""
+        scratch = QPHierarchy(self.damping, self.rank_tolerance)
+        levels = [Level(np.eye(2), np.ones(2)), Level(np.ones((1, 2)), np.full(1, -1.0))]
+        bounds = (np.full(2, -0.1), np.full(2, 0.1))
+        for _ in range(2):
+            scratch.solve(levels, 2, fixed_index=np.zeros(0, dtype=np.int64),
+                          fixed_dq=np.zeros(0), bounds=bounds)
+
+    @property
+    def hot_starts(self) -> int:
+        """Levels whose bounds crossed, solved from the level's previous active set."""
+        return int(self._counters[0])
+
+    def _qp_level_step(self, level, projected, residual, basis, dq, bounded, lower, upper):
+        """(y, DoFs of the active bounds) of a level whose hot start failed: ProxSuite's
+        QP, its duals polished, or the exact active-set method; the active set is kept."""
+        dofs, rows, low, high = _level_bounds(basis, dq, bounded, lower, upper)
+        slack = _multiplier_slack(projected, residual)
         hessian = projected.T @ projected
-        hessian[np.diag_indices_from(hessian)] += damping_sq
-        qp = self._qp_solve(level, hessian, -(projected.T @ residual), rows, low, high)
-        polished = _polish(projected, residual, self.damping, rows, low, high, qp.results.z)
-        if polished is not None:
-            step, active = polished
-            return step, dofs[active]
-        self.unpolished += 1  # ProxSuite's answer is not certified: solve exactly instead
-        step, active = _active_set_solve(projected, residual, self.damping, rows, low, high)
+        hessian[np.diag_indices_from(hessian)] += self.damping * self.damping
+        dual = self._qp_solve(level, hessian, -(projected.T @ residual), rows, low,
+                              high).results.z
+        upper_side = (dual > slack) & np.isfinite(high)
+        step, active, upper_side, status = _polish(
+            projected, residual, self.damping, rows, low, high,
+            upper_side | ((dual < -slack) & np.isfinite(low)), upper_side, slack)
+        if status != CERTIFIED:  # ProxSuite's answer is not certified: solve exactly instead
+            self.unpolished += 1
+            step, active, upper_side = _active_set_solve(projected, residual, self.damping,
+                                                         rows, low, high)
+        _remember(self._active_sides[level], dofs, active, upper_side)
+        self._known_sides[level] = True
         return step, dofs[active]
 
     def _qp_solve(self, level, hessian, gradient, rows, low, high):
@@ -266,49 +305,291 @@ def _new_qp(shape):
     return qp
 
 
-def _polish(projected, residual, damping, rows, low, high, dual):
-    """Exact solution of the level's QP on an active set of bounds, (y, active row mask),
-    or None. The set starts from ProxSuite's duals and is corrected a few times (violated
-    bounds join it, the bound with the worst wrong-sign multiplier leaves it) until the KKT
-    conditions hold (nonnegative multipliers, by NNLS on a degenerate vertex). Each try is a
-    least-squares problem in the nullspace of the active rows (SVD), never the normal
-    equations, whose condition number is squared."""
+@numba.njit(cache=True, fastmath=REORDERING)
+def _cascade_levels(jacobian, target, offsets, level, dq, basis, bounded, lower, upper,
+                    active_sides, known_sides, enforced, residuals, counters, damping,
+                    rank_tolerance, given_step, given_dofs):
+    """QPHierarchy._cascade's levels from `level` on, dq, enforced, residuals, the kept
+    active sets and counters (hot starts) updated in place, until a level's hot start
+    fails (no kept active set, or no KKT point from it). given_step: `level`'s step when
+    QPHierarchy solved it (empty otherwise), given_dofs: the DoFs of its active bounds;
+    the level is solved again from the active set kept then, so that its step is computed
+    by the same code whether it came from ProxSuite or from a hot start (the same bits for
+    the same input), and given_step is the fallback.
+    Returns (that level, or the level count when all are solved; the basis it starts
+    from, its projected rows P and residual r: what QPHierarchy solves it from)."""
+    level_count = len(offsets) - 1
+    while level < level_count:
+        rows = jacobian[offsets[level]:offsets[level + 1]]
+        wanted = target[offsets[level]:offsets[level + 1]]
+        if basis.shape[1] > 0 and rows.shape[0] > 0:
+            projected = _sparse_rows_product(rows, basis)
+            residual = wanted - _times(rows, dq)
+            step, status = _level_step(projected, residual, basis, dq, bounded, lower, upper,
+                                       active_sides[level], known_sides[level], enforced,
+                                       damping)
+            if status == NO_KKT_POINT:
+                if not len(given_step):
+                    return level, basis, projected, residual
+                step = given_step
+                enforced[given_dofs] = True
+            elif status == CERTIFIED and not len(given_step):
+                counters[0] += 1
+            given_step = given_step[:0]
+            dq += _times(basis, step)
+            if level < level_count - 1:
+                basis = _nullspace_update(projected, basis, rank_tolerance)
+        missed = wanted - _times(rows, dq)
+        residuals[level] = np.sqrt(np.sum(missed * missed))
+        level += 1
+    return level, basis, np.zeros((0, 0)), np.zeros(0)
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _level_step(projected, residual, basis, dq, bounded, lower, upper, active_side, known,
+                enforced, damping):
+    """(y, FREE) when the level's damped least squares step keeps within the bounds (the
+    ones a QP left a hair outside not further out), (y, CERTIFIED) when the polish from the
+    level's kept active set (active_side: +1 upper, -1 lower, 0 inactive per DoF; known:
+    whether there is one) finds the KKT point, which is then kept; else (_, NO_KKT_POINT)."""
+    step = _damped_least_squares(projected, residual, damping * damping)
+    dofs, rows, low, high = _level_bounds(basis, dq, bounded, lower, upper)
+    reach = rows @ step
+    if np.all((reach >= low) & (reach <= high)):
+        return step, FREE
+    if not known:
+        return step, NO_KKT_POINT
+    side = active_side[dofs]
+    step, active, upper_side, status = _polish(projected, residual, damping, rows, low, high,
+                                               side != 0, side > 0,
+                                               _multiplier_slack(projected, residual))
+    if status == CERTIFIED:
+        _remember(active_side, dofs, active, upper_side)
+        enforced[dofs[active]] = True
+    return step, status
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _level_bounds(basis, dq, bounded, lower, upper):
+    """(dofs, rows, low, high): the bounded DoFs the level can still move (basis row above
+    MOVABLE_ROW_NORM), their basis rows and the room left to their bounds, never
+    excluding 0 (y = 0 stays feasible: a DoF a QP left a hair outside may not go further
+    out)."""
+    count = 0
+    dofs = np.empty(len(bounded), dtype=np.int64)
+    for dof in bounded:
+        if np.sqrt(np.sum(basis[dof] * basis[dof])) > MOVABLE_ROW_NORM:
+            dofs[count] = dof
+            count += 1
+    dofs = dofs[:count]
+    rows = np.empty((count, basis.shape[1]))
+    for index in range(count):
+        rows[index] = basis[dofs[index]]
+    low = np.minimum(lower[dofs] - dq[dofs], 0.0)
+    high = np.maximum(upper[dofs] - dq[dofs], 0.0)
+    return dofs, rows, low, high
+
+
+@numba.njit(cache=True)
+def _multiplier_slack(projected, residual):
+    """Tolerated wrong-sign multiplier: MULTIPLIER_SLACK x (1 + |P^T r|_inf)."""
+    gradient = np.ascontiguousarray(projected.T) @ residual
+    return MULTIPLIER_SLACK * (1.0 + (np.max(np.abs(gradient)) if len(gradient) else 0.0))
+
+
+@numba.njit(cache=True)
+def _remember(active_side, dofs, active, upper_side):
+    """Keep a level's active set by DoF (+1 upper, -1 lower, 0 inactive): the next
+    problem of that level may have other rows."""
+    active_side[:] = 0
+    for index in range(len(dofs)):
+        if active[index]:
+            active_side[dofs[index]] = 1 if upper_side[index] else -1
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _polish(projected, residual, damping, rows, low, high, active, upper_side, slack):
+    """Exact solution of the level's QP on an active set of bounds: (y, active row mask,
+    upper-side mask, status), status CERTIFIED when the KKT conditions hold (no bound
+    violated, multipliers of the right sign within `slack`, by NNLS on a degenerate vertex),
+    else NO_KKT_POINT. The set starts from `active` / `upper_side` and is corrected a few
+    times: violated bounds join it, the bound with the worst wrong-sign multiplier leaves
+    it. Each try minimizes in the nullspace of the active rows (_on_active_rows)."""
     variables = projected.shape[1]
-    design = np.vstack([projected, damping * np.eye(variables)])
-    wanted = np.concatenate([residual, np.zeros(variables)])
-    slack = MULTIPLIER_SLACK * (1.0 + np.abs(projected.T @ residual).max(initial=0.0))
-    upper_side = (dual > slack) & np.isfinite(high)
-    active = upper_side | ((dual < -slack) & np.isfinite(low))
+    hessian = _damped_gram(np.ascontiguousarray(projected.T), damping * damping)
+    for i in range(variables):      # _damped_gram fills the lower triangle only
+        for j in range(i):
+            hessian[j, i] = hessian[i, j]
+    gradient = np.ascontiguousarray(projected.T) @ residual
+    active, upper_side = active.copy(), upper_side.copy()
+    step = np.zeros(variables)
     for _ in range(POLISH_ROUNDS):
         index = np.flatnonzero(active)
         value = np.where(upper_side[index], high[index], low[index])
-        step = _equality_least_squares(design, wanted, rows[index], value)
+        active_rows = np.ascontiguousarray(rows[index])
+        step, multiplier, rank = _on_active_rows(hessian, gradient, active_rows, value)
         reach = rows @ step
-        if np.any(np.abs(reach[index] - value) > FEASIBILITY_SLACK):
-            return None  # the active bounds cannot all hold: not a vertex, no KKT point
-        above, below = reach > high + FEASIBILITY_SLACK, reach < low - FEASIBILITY_SLACK
-        if np.any(above | below):
-            if np.all(active[above | below]):
-                return None  # active rows in conflict: no vertex of this set is feasible
-            active |= above | below
-            upper_side = (upper_side | above) & ~below
+        missed = np.abs(reach[index] - value) > FEASIBILITY_SLACK
+        if np.any(missed):          # dependent active rows that disagree: not a vertex
+            active[index[missed]] = False
             continue
-        if not len(index):
-            return step, active
-        gradient = design.T @ (design @ step - wanted)
-        outward = rows[index].T * np.where(upper_side[index], 1.0, -1.0)
-        multiplier = np.linalg.lstsq(outward, -gradient, rcond=None)[0]
-        if np.all(multiplier >= -slack) or scipy.optimize.nnls(outward, -gradient)[1] <= slack:
-            return step, active
-        active[index[np.argmin(multiplier)]] = False
-    return None
+        excess = np.maximum(reach - high, low - reach)
+        worst = np.argmax(excess)
+        if excess[worst] > FEASIBILITY_SLACK:   # the most violated bound joins the set
+            if active[worst]:
+                return step, active, upper_side, NO_KKT_POINT  # active rows in conflict
+            active[worst] = True
+            upper_side[worst] = reach[worst] > high[worst]
+            continue
+        side = np.where(upper_side[index], 1.0, -1.0)
+        signed = multiplier * side
+        if np.all(signed >= -slack):
+            return step, active, upper_side, CERTIFIED
+        if rank < len(index):       # dependent rows: other multipliers may fit the signs
+            outward = np.ascontiguousarray(active_rows.T * side)
+            if _nonnegative_residual(outward, gradient - hessian @ step, slack) <= slack:
+                return step, active, upper_side, CERTIFIED
+        active[index[np.argmin(signed)]] = False
+    return step, active, upper_side, NO_KKT_POINT
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _on_active_rows(hessian, gradient, active_rows, value):
+    """argmin 1/2 y^T H y - g^T y subject to active_rows y = value (least squares on
+    dependent rows), by the nullspace method on a pivoted QR of active_rows^T: (y, one set
+    of multipliers mu with active_rows^T mu = g - H y, rank of active_rows)."""
+    variables = len(gradient)
+    orthogonal, triangular, order, rank = _pivoted_qr(np.ascontiguousarray(active_rows.T))
+    kept = value[order[:rank]]
+    particular = np.zeros(rank)     # R11^T t = kept
+    for i in range(rank):
+        acc = kept[i]
+        for p in range(i):
+            acc -= triangular[p, i] * particular[p]
+        particular[i] = acc / triangular[i, i]
+    step = np.ascontiguousarray(orthogonal[:, :rank]) @ particular
+    if rank < variables:
+        free = np.ascontiguousarray(orthogonal[:, rank:])
+        free_t = np.ascontiguousarray(free.T)
+        step += free @ _spd_solve(free_t @ hessian @ free,
+                                  free_t @ (gradient - hessian @ step))
+    multiplier = np.zeros(len(value))
+    multiplier[order[:rank]] = _basic_solution(orthogonal, triangular, rank,
+                                               gradient - hessian @ step)
+    return step, multiplier, rank
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _pivoted_qr(matrix):
+    """Householder QR with column pivoting, matrix[:, order] = Q R: (Q n x n orthogonal, R
+    n x s, order, rank); a column whose remaining norm is at most RANK_RELATIVE x the
+    largest column norm ends the rank (R[:rank, :rank] is then upper triangular)."""
+    n, columns = matrix.shape
+    factor = matrix.copy()
+    orthogonal = np.eye(n)
+    order = np.arange(columns)
+    norms = np.zeros(columns)
+    largest = 0.0
+    for c in range(columns):
+        acc = 0.0
+        for i in range(n):
+            acc += factor[i, c] * factor[i, c]
+        largest = max(largest, acc)
+    reflector = np.zeros(n)
+    rank = 0
+    for j in range(min(n, columns)):
+        for c in range(j, columns):
+            acc = 0.0
+            for i in range(j, n):
+                acc += factor[i, c] * factor[i, c]
+            norms[c] = acc
+        pivot = j + np.argmax(norms[j:])
+        if norms[pivot] == 0.0 or norms[pivot] <= RANK_RELATIVE * RANK_RELATIVE * largest:
+            break
+        if pivot != j:
+            for i in range(n):
+                factor[i, j], factor[i, pivot] = factor[i, pivot], factor[i, j]
+            order[j], order[pivot] = order[pivot], order[j]
+        length = np.sqrt(norms[pivot])
+        alpha = -length if factor[j, j] >= 0.0 else length
+        reflector[j:] = factor[j:, j]
+        reflector[j] -= alpha
+        scale = 2.0 / (norms[pivot] - 2.0 * alpha * factor[j, j] + alpha * alpha)
+        for c in range(j, columns):
+            acc = 0.0
+            for i in range(j, n):
+                acc += reflector[i] * factor[i, c]
+            acc *= scale
+            for i in range(j, n):
+                factor[i, c] -= acc * reflector[i]
+        for row in range(n):
+            acc = 0.0
+            for i in range(j, n):
+                acc += orthogonal[row, i] * reflector[i]
+            acc *= scale
+            for i in range(j, n):
+                orthogonal[row, i] -= acc * reflector[i]
+        rank += 1
+    return orthogonal, factor, order, rank
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _basic_solution(orthogonal, triangular, rank, rhs):
+    """x (rank) with R11 x = Q1^T rhs: the least-squares coefficients of rhs on the first
+    `rank` pivoted columns of a _pivoted_qr factorization."""
+    x = np.ascontiguousarray(orthogonal[:, :rank].T) @ rhs
+    for i in range(rank - 1, -1, -1):
+        acc = x[i]
+        for p in range(i + 1, rank):
+            acc -= triangular[i, p] * x[p]
+        x[i] = acc / triangular[i, i]
+    return x
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _nonnegative_residual(matrix, rhs, tolerance):
+    """min |matrix x - rhs| over x >= 0 (Lawson-Hanson NNLS; iterations capped)."""
+    columns = matrix.shape[1]
+    x = np.zeros(columns)
+    passive = np.zeros(columns, dtype=np.bool_)
+    for _ in range(3 * columns):
+        dual = np.ascontiguousarray(matrix.T) @ (rhs - matrix @ x)
+        entering, best = -1, tolerance
+        for c in range(columns):
+            if not passive[c] and dual[c] > best:
+                entering, best = c, dual[c]
+        if entering < 0:
+            break
+        passive[entering] = True
+        for _ in range(3 * columns):
+            index = np.flatnonzero(passive)
+            orthogonal, triangular, order, rank = _pivoted_qr(
+                np.ascontiguousarray(matrix[:, index]))
+            trial = np.zeros(len(index))
+            trial[order[:rank]] = _basic_solution(orthogonal, triangular, rank, rhs)
+            if np.all(trial > 0.0):
+                x[:] = 0.0
+                x[index] = trial
+                break
+            fraction = 1.0
+            for i in range(len(index)):
+                if trial[i] <= 0.0:
+                    current = x[index[i]]
+                    fraction = min(fraction, current / (current - trial[i]))
+            for i in range(len(index)):
+                x[index[i]] += fraction * (trial[i] - x[index[i]])
+                if x[index[i]] <= 0.0:
+                    x[index[i]] = 0.0
+                    passive[index[i]] = False
+    return np.sqrt(np.sum((matrix @ x - rhs) ** 2))
 
 
 def _active_set_solve(projected, residual, damping, rows, low, high):
-    """Exact minimizer of |P y - r|^2 + damping^2 |y|^2 subject to low <= rows y <= high, and
-    its active row mask, by a primal active-set method from y = 0 (feasible: low <= 0 <=
-    high by construction). The objective is strictly convex, so the optimum is unique and
-    does not depend on any solver history; used where ProxSuite's answer is not certified."""
+    """Exact minimizer of |P y - r|^2 + damping^2 |y|^2 subject to low <= rows y <= high, its
+    active row mask and which of those rows are on their upper bound, by a primal
+    active-set method from y = 0 (feasible: low <= 0 <= high by construction). The
+    objective is strictly convex, so the optimum is unique and does not depend on any
+    solver history; used where ProxSuite's answer is not certified."""
     variables = projected.shape[1]
     design = np.vstack([projected, damping * np.eye(variables)])
     wanted = np.concatenate([residual, np.zeros(variables)])
@@ -344,9 +625,10 @@ def _active_set_solve(projected, residual, damping, rows, low, high):
         if blocking is not None:
             working.append(blocking[0])
             side.append(blocking[1])
-    active = np.zeros(len(rows), dtype=bool)
+    active, upper_side = np.zeros(len(rows), dtype=bool), np.zeros(len(rows), dtype=bool)
     active[working] = True
-    return y, active
+    upper_side[[row for row, row_side in zip(working, side) if row_side > 0]] = True
+    return y, active, upper_side
 
 
 def _equality_least_squares(design, wanted, equality_rows, equality_value):

@@ -430,8 +430,9 @@ def level_contenders(robot, stack_yaml, start, offsets, dt, level_counts) -> lis
 def level_figures(records, contenders, steps) -> dict:
     """Per contender: timing (us), mean clamping iterations, worst limit excess (rad), the
     median ratio of n levels over n - 1 levels of the same hierarchy, and for the QP
-    hierarchy its counters per step over all `steps` (warm-up included): levels that needed
-    a QP, ProxSuite cold starts, QP solutions the polish could not certify."""
+    hierarchy its counters per step over all `steps` (warm-up included): levels whose
+    bounds crossed solved from their hot start, levels ProxSuite solved, its cold starts,
+    its solutions the polish could not certify."""
     result = {}
     for contender in contenders:
         record = records[contender.name]
@@ -443,7 +444,8 @@ def level_figures(records, contenders, steps) -> dict:
                  "max_limit_excess": record.max_limit_excess,
                  **{f"{counter}_per_step": (getattr(hierarchy, counter) / steps
                                             if hasattr(hierarchy, counter) else None)
-                    for counter in ("qp_solves", "cold_starts", "unpolished")}}
+                    for counter in ("hot_starts", "qp_solves", "cold_starts",
+                                    "unpolished")}}
         entry["over_one_level_less"] = (entry["median_us"] / previous["median_us"]
                                         if previous else None)
         result[contender.name] = entry
@@ -452,9 +454,10 @@ def level_figures(records, contenders, steps) -> dict:
 
 def print_level_table(title, result) -> None:
     print(title)
-    counters = ("qp_solves_per_step", "cold_starts_per_step", "unpolished_per_step")
+    counters = ("hot_starts_per_step", "qp_solves_per_step", "cold_starts_per_step",
+                "unpolished_per_step")
     print(f"{'contender':<16}{'median us':>10}{'p99 us':>10}{'max us':>10}{'iters':>7}"
-          f"{'excess rad':>12}{'x previous':>12}{'QPs':>7}{'cold':>7}{'unpol':>7}")
+          f"{'excess rad':>12}{'x previous':>12}{'hot':>7}{'QPs':>7}{'cold':>7}{'unpol':>7}")
     for name, entry in result.items():
         ratio = entry["over_one_level_less"]
         print(f"{name:<16}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
@@ -514,8 +517,9 @@ def run_levels(args) -> int:
                       f"moved (0.2, 0.2, -0.2) m", results["panda"])
     print("x previous: median over the same hierarchy's median with one level less; iters: "
           "mean hierarchy solutions per step; excess: worst limit violation over the run; "
-          "QPs, cold, unpol: per step (warm-up included), levels that needed a ProxSuite QP, "
-          "its cold starts, its solutions the polish could not certify")
+          "hot, QPs, cold, unpol: per step (warm-up included), levels whose bounds crossed "
+          "solved from their previous active set, levels ProxSuite solved, its cold starts, "
+          "its solutions the polish could not certify")
     if args.json:
         with open(args.json, "w") as output:
             json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt,
