@@ -14,8 +14,9 @@ from scipy.optimize import lsq_linear
 from helpers.problems import hierarchy_problems, residual
 from stance.hierarchy import DampedHierarchy, Level, stack_levels
 from stance.pik import PIKSolver, default_stack_specs
-from stance.qp_hierarchy import (COLD_MAX_ITERATIONS, INNER_MAX_ITERATIONS,
-                                 WARM_MAX_ITERATIONS, QPHierarchy, robot_dof_names)
+from stance.qp_hierarchy import (CERTIFIED, COLD_MAX_ITERATIONS, INNER_MAX_ITERATIONS,
+                                 WARM_MAX_ITERATIONS, QPHierarchy, _nonnegative_residual,
+                                 _polish, robot_dof_names)
 from stance.robot import Robot
 from stance_tools.bench import (HANDS_FORWARD, TALOS_LEVEL_STACK, bench_start,
                                 level_contenders, limit_excess)
@@ -296,3 +297,21 @@ def test_hot_start_takes_the_same_steps_with_few_proxsuite_solves(talos):
     crossed = cold.solver.hierarchy.qp_solves
     assert crossed > 100 and hot.solver.hierarchy.hot_starts > 0.9 * crossed
     assert hot.solver.hierarchy.qp_solves < 0.1 * crossed
+
+
+def test_polish_lets_a_joining_bound_replace_the_one_it_conflicts_with():
+    """One variable wanting 1, two bounds on it (upper 0.5, then 0.3), hot-started with the
+    first active: the second joins, is dependent on the first and must replace it."""
+    step, active, upper_side, status = _polish(
+        np.ones((1, 1)), np.ones(1), DAMPING, np.ones((2, 1)), np.full(2, -1.0),
+        np.array([0.5, 0.3]), np.array([True, False]), np.array([True, False]), 1e-12)
+    assert status == CERTIFIED
+    assert list(active) == [False, True] and upper_side[1]
+    np.testing.assert_allclose(step, [0.3], atol=1e-15)
+
+
+def test_nonnegative_residual_survives_a_column_left_out_by_the_rank_cut():
+    """The entering column dependent to within the rank tolerance: no 0 / 0."""
+    residual = _nonnegative_residual(np.array([[2.0, 1.0], [0.0, 5e-13]]),
+                                     np.array([1.0, 30.0]), 2e-12)
+    assert np.isfinite(residual) and residual <= np.hypot(1.0, 30.0)

@@ -20,7 +20,8 @@ the result is then DampedHierarchy's (to rounding). So DampedHierarchy's compile
 comes first, and when every level's dq respects the bounds (most steps: progressive
 clamping keeps joints off their limits) its solution is the answer, restart state
 included (a re-solve of the clamping loop then restarts where it can); the cascade below
-runs only when a level crosses a bound. It is compiled (numba) but for ProxSuite.
+runs only when a level crosses a bound. It is compiled (numba) but for ProxSuite and the
+exact active-set fallback.
 
 A level that crosses a bound is first polished from its hot start, the active set it
 ended with last time (kept by DoF: the clamping loop re-solves each step once or twice, and
@@ -30,7 +31,8 @@ and keeps the result when it is a KKT point: no bound violated, multipliers of t
 sign (by NNLS at a degenerate vertex, where more bounds are active than y has variables).
 Otherwise it corrects the set (the most violated bound joins, the worst wrong-sign one
 leaves) a bounded number of times. The KKT point is unique (the objective is strictly
-convex), so the result does not depend on where the polish started.
+convex), so the result does not depend on where the polish started, to within the
+multiplier tolerance (MULTIPLIER_SLACK).
 
 Where the hot start fails (or there is none) a persistent ProxSuite dense QP (one per
 level and size) is updated and warm-started from its previous result, cold started when
@@ -40,7 +42,7 @@ iterations, 120 ms). Its duals seed the polish; where that finds no KKT point ei
 exact primal active-set method from y = 0 gives the level's step. The active set found is
 kept for the next hot start, and the compiled cascade solves the level again from it, so
 that a level's step comes out of the same code, hence the same bits, whichever way its
-active set was found.
+active set was found (where that re-solve finds no KKT point, the step found is kept).
 """
 
 from __future__ import annotations
@@ -112,8 +114,8 @@ class QPHierarchy:
     velocity_steps: |dq| bound per DoF from velocity limits (rad or m, inf if none); a bound
         equal to it is reported as "<dof> velocity" rather than "<dof> lower/upper".
     hot_start: a level whose bounds cross first tries the active set it ended with last
-        time (certified by its KKT conditions, so the answer does not depend on it); off,
-        every such level starts from ProxSuite.
+        time (certified by its KKT conditions, so the answer does not depend on it beyond
+        MULTIPLIER_SLACK); off, every such level starts from ProxSuite.
     """
 
     uses_bounds = True
@@ -360,8 +362,10 @@ def _level_step(projected, residual, basis, dq, bounded, lower, upper, active_si
     if not known:
         return step, NO_KKT_POINT
     side = active_side[dofs]
+    upper_side = (side > 0) & np.isfinite(high)
     step, active, upper_side, status = _polish(projected, residual, damping, rows, low, high,
-                                               side != 0, side > 0,
+                                               upper_side | ((side < 0) & np.isfinite(low)),
+                                               upper_side,
                                                _multiplier_slack(projected, residual))
     if status == CERTIFIED:
         _remember(active_side, dofs, active, upper_side)
@@ -423,11 +427,16 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
     gradient = np.ascontiguousarray(projected.T) @ residual
     active, upper_side = active.copy(), upper_side.copy()
     step = np.zeros(variables)
+    joined = -1                     # the bound that joined last
     for _ in range(POLISH_ROUNDS):
         index = np.flatnonzero(active)
         value = np.where(upper_side[index], high[index], low[index])
         active_rows = np.ascontiguousarray(rows[index])
-        step, multiplier, rank = _on_active_rows(hessian, gradient, active_rows, value)
+        # the bound that just joined pivots first: the rows it conflicts with are then the
+        # dependent ones, which miss their value and leave (it replaces them)
+        leading = np.searchsorted(index, joined) if joined >= 0 and active[joined] else -1
+        step, multiplier, rank = _on_active_rows(hessian, gradient, active_rows, value,
+                                                 leading)
         reach = rows @ step
         missed = np.abs(reach[index] - value) > FEASIBILITY_SLACK
         if np.any(missed):          # dependent active rows that disagree: not a vertex
@@ -440,6 +449,7 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
                 return step, active, upper_side, NO_KKT_POINT  # active rows in conflict
             active[worst] = True
             upper_side[worst] = reach[worst] > high[worst]
+            joined = worst
             continue
         side = np.where(upper_side[index], 1.0, -1.0)
         signed = multiplier * side
@@ -454,12 +464,14 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _on_active_rows(hessian, gradient, active_rows, value):
+def _on_active_rows(hessian, gradient, active_rows, value, leading):
     """argmin 1/2 y^T H y - g^T y subject to active_rows y = value (least squares on
-    dependent rows), by the nullspace method on a pivoted QR of active_rows^T: (y, one set
-    of multipliers mu with active_rows^T mu = g - H y, rank of active_rows)."""
+    dependent rows), by the nullspace method on a pivoted QR of active_rows^T (row
+    `leading` pivoted first, if >= 0): (y, one set of multipliers mu with active_rows^T mu
+    = g - H y, rank of active_rows)."""
     variables = len(gradient)
-    orthogonal, triangular, order, rank = _pivoted_qr(np.ascontiguousarray(active_rows.T))
+    orthogonal, triangular, order, rank = _pivoted_qr(np.ascontiguousarray(active_rows.T),
+                                                      leading)
     kept = value[order[:rank]]
     particular = np.zeros(rank)     # R11^T t = kept
     for i in range(rank):
@@ -480,10 +492,11 @@ def _on_active_rows(hessian, gradient, active_rows, value):
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _pivoted_qr(matrix):
+def _pivoted_qr(matrix, leading):
     """Householder QR with column pivoting, matrix[:, order] = Q R: (Q n x n orthogonal, R
-    n x s, order, rank); a column whose remaining norm is at most RANK_RELATIVE x the
-    largest column norm ends the rank (R[:rank, :rank] is then upper triangular)."""
+    n x s, order, rank); column `leading` first if >= 0, then the largest remaining; a
+    column whose remaining norm is at most RANK_RELATIVE x the largest column norm ends
+    the rank (R[:rank, :rank] is then upper triangular)."""
     n, columns = matrix.shape
     factor = matrix.copy()
     orthogonal = np.eye(n)
@@ -504,6 +517,8 @@ def _pivoted_qr(matrix):
                 acc += factor[i, c] * factor[i, c]
             norms[c] = acc
         pivot = j + np.argmax(norms[j:])
+        if j == 0 and leading >= 0 and norms[leading] > RANK_RELATIVE ** 2 * largest:
+            pivot = leading
         if norms[pivot] == 0.0 or norms[pivot] <= RANK_RELATIVE * RANK_RELATIVE * largest:
             break
         if pivot != j:
@@ -564,7 +579,7 @@ def _nonnegative_residual(matrix, rhs, tolerance):
         for _ in range(3 * columns):
             index = np.flatnonzero(passive)
             orthogonal, triangular, order, rank = _pivoted_qr(
-                np.ascontiguousarray(matrix[:, index]))
+                np.ascontiguousarray(matrix[:, index]), -1)
             trial = np.zeros(len(index))
             trial[order[:rank]] = _basic_solution(orthogonal, triangular, rank, rhs)
             if np.all(trial > 0.0):
@@ -573,9 +588,10 @@ def _nonnegative_residual(matrix, rhs, tolerance):
                 break
             fraction = 1.0
             for i in range(len(index)):
-                if trial[i] <= 0.0:
+                if trial[i] <= 0.0:     # x >= 0, so x - trial > 0 unless both are 0
                     current = x[index[i]]
-                    fraction = min(fraction, current / (current - trial[i]))
+                    gap = current - trial[i]
+                    fraction = min(fraction, current / gap if gap > 0.0 else 0.0)
             for i in range(len(index)):
                 x[index[i]] += fraction * (trial[i] - x[index[i]])
                 if x[index[i]] <= 0.0:
