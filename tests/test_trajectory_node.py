@@ -25,6 +25,7 @@ from helpers.probe import RELIABLE, BackgroundNode
 from pik_node.conversions import se3_from_pose_msg
 from pik_node.node import LATCHED
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance.execution.interpolation import TransitionPlanner
@@ -52,6 +53,10 @@ TRACKING_DELAY = 0.05
 STANCES = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 HISTORY = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# pik_node's 500 Hz status, kept raw as it arrives and decoded when the test asks: a probe
+# decoding each one in Python fell behind on a loaded machine and, at depth 10, kept 762
+# of ~7,500, so the status it held at a stamp could be 0.3 s older. 10 s of queue.
+PIK_STATUS = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class TrajectoryProbe(BackgroundNode):
@@ -64,10 +69,11 @@ class TrajectoryProbe(BackgroundNode):
         super().__init__(name, domain_id)
         self.lock = threading.Lock()
         self.trajectories, self.stances, self.statuses = [], [], []
-        self.pik_frames, self.frame_log = set(pik_frames), []
+        self.pik_frames, self._raw_statuses, self._frame_log = set(pik_frames), [], []
         if pik_frames:
-            self.node.create_subscription(SolverStatus, "/pik/status", self._on_pik_status,
-                                          RELIABLE)
+            self.node.create_subscription(SolverStatus, "/pik/status",
+                                          self._keep(self._raw_statuses), PIK_STATUS,
+                                          raw=True)
         self.target_log = {task: [] for task in target_tasks}
         for task in target_tasks:
             self.node.create_subscription(
@@ -100,16 +106,22 @@ class TrajectoryProbe(BackgroundNode):
         with self.lock:
             self.stances.append((time.time(), msg))
 
-    def _on_pik_status(self, msg):
-        frames = {task.name: se3_from_pose_msg(task.current) for task in msg.tasks
-                  if task.name in self.pik_frames}
+    @property
+    def frame_log(self):
+        """(stamp s, {task: frame pose}) of every /pik/status received so far (decoded
+        here, from the test's thread)."""
         with self.lock:
-            self.frame_log.append((stamp_seconds(msg), frames))
+            new = self._raw_statuses[len(self._frame_log):]
+        for data in new:
+            msg = deserialize_message(data, SolverStatus)
+            self._frame_log.append((stamp_seconds(msg), {
+                task.name: se3_from_pose_msg(task.current) for task in msg.tasks
+                if task.name in self.pik_frames}))
+        return self._frame_log
 
     def frames_at(self, stamp):
         """{task: frame pose} of the newest /pik/status stamped at or before stamp (s)."""
-        with self.lock:
-            return [frames for at, frames in self.frame_log if at <= stamp][-1]
+        return [frames for at, frames in self.frame_log if at <= stamp][-1]
 
     def _on_joints(self, msg):
         with self.lock:
