@@ -453,14 +453,39 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
             continue
         side = np.where(upper_side[index], 1.0, -1.0)
         signed = multiplier * side
-        if np.all(signed >= -slack):
-            return step, active, upper_side, CERTIFIED
-        if rank < len(index):       # dependent rows: other multipliers may fit the signs
-            outward = np.ascontiguousarray(active_rows.T * side)
-            if _nonnegative_residual(outward, gradient - hessian @ step, slack) <= slack:
-                return step, active, upper_side, CERTIFIED
+        certified = np.all(signed >= -slack)
+        if not certified and rank < len(index):  # dependent rows: other multipliers may
+            outward = np.ascontiguousarray(active_rows.T * side)  # fit the signs
+            certified = _nonnegative_residual(outward, gradient - hessian @ step,
+                                              slack) <= slack
+        if certified:
+            return _on_tight_rows(hessian, gradient, rows, low, high, reach, step, active,
+                                  upper_side, leading)
         active[index[np.argmin(signed)]] = False
     return step, active, upper_side, NO_KKT_POINT
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _on_tight_rows(hessian, gradient, rows, low, high, reach, step, active, upper_side,
+                   leading):
+    """The certified step of _polish, made independent of the active set that certified
+    it: at a degenerate vertex several sets do (ProxSuite's duals gave two fresh solvers
+    two of them, and steps 3e-14 apart). Every bound the step is on (within
+    FEASIBILITY_SLACK; the upper one first) holds at the optimum, so the optimum on all
+    of them as equalities is the same point: solved again on them, without a leading
+    pivot, unless that is what the step already came from. Returns _polish's tuple with
+    the certifying set (the better hot start: the tight set's extra rows would only
+    have to leave again)."""
+    on_upper = (np.abs(reach - high) <= FEASIBILITY_SLACK) & np.isfinite(high)
+    tight = on_upper | ((np.abs(reach - low) <= FEASIBILITY_SLACK) & np.isfinite(low))
+    if leading < 0 and np.array_equal(tight, active) and \
+            np.array_equal(on_upper, upper_side & active):
+        return step, active, upper_side, CERTIFIED
+    index = np.flatnonzero(tight)
+    value = np.where(on_upper[index], high[index], low[index])
+    step = _on_active_rows(hessian, gradient, np.ascontiguousarray(rows[index]), value,
+                           -1)[0]
+    return step, active, upper_side, CERTIFIED
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
