@@ -32,7 +32,9 @@ sign (by NNLS at a degenerate vertex, where more bounds are active than y has va
 Otherwise it corrects the set (the most violated bound joins, the worst wrong-sign one
 leaves) a bounded number of times. The KKT point is unique (the objective is strictly
 convex), so the result does not depend on where the polish started, to within the
-multiplier tolerance (MULTIPLIER_SLACK).
+multiplier tolerance (MULTIPLIER_SLACK); to the bit, a certified step is solved once more
+on every bound it is on (at a degenerate vertex several active sets certify it, and each
+gives the point to rounding).
 
 Where the hot start fails (or there is none) a persistent ProxSuite dense QP (one per
 level and size) is updated and warm-started from its previous result, cold started when
