@@ -29,7 +29,8 @@ the set changes little from one step to the next). The polish solves the problem
 active bounds as equalities exactly (nullspace method on a pivoted QR of the active rows)
 and keeps the result when it is a KKT point: no bound violated, multipliers of the right
 sign (by NNLS at a degenerate vertex, where more bounds are active than y has variables).
-Otherwise it corrects the set (the most violated bound joins, the worst wrong-sign one
+Otherwise it corrects the set (the most violated bound joins, replacing by Goldfarb and
+Idnani's ratio rule the one it makes redundant at a vertex; the worst wrong-sign one
 leaves) a bounded number of times. The KKT point is unique (the objective is strictly
 convex), so the result does not depend on where the polish started, to within the
 multiplier tolerance (MULTIPLIER_SLACK); to the bit, a certified step is solved once more
@@ -419,8 +420,9 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
     upper-side mask, status), status CERTIFIED when the KKT conditions hold (no bound
     violated, multipliers of the right sign within `slack`, by NNLS on a degenerate vertex),
     else NO_KKT_POINT. The set starts from `active` / `upper_side` and is corrected a few
-    times: violated bounds join it, the bound with the worst wrong-sign multiplier leaves
-    it. Each try minimizes in the nullspace of the active rows (_on_active_rows)."""
+    times: the most violated bound joins it (replacing the one _leaving_bound names when
+    its row depends on the active ones), the bound with the worst wrong-sign multiplier
+    leaves it. Each try minimizes in the nullspace of the active rows (_on_active_rows)."""
     variables = projected.shape[1]
     hessian = _damped_gram(np.ascontiguousarray(projected.T), damping * damping)
     for i in range(variables):      # _damped_gram fills the lower triangle only
@@ -437,23 +439,29 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         # the bound that just joined pivots first: the rows it conflicts with are then the
         # dependent ones, which miss their value and leave (it replaces them)
         leading = np.searchsorted(index, joined) if joined >= 0 and active[joined] else -1
-        step, multiplier, rank = _on_active_rows(hessian, gradient, active_rows, value,
-                                                 leading)
+        step, multiplier, (orthogonal, triangular, order, rank) = _on_active_rows(
+            hessian, gradient, active_rows, value, leading)
         reach = rows @ step
         missed = np.abs(reach[index] - value) > FEASIBILITY_SLACK
         if np.any(missed):          # dependent active rows that disagree: not a vertex
             active[index[missed]] = False
             continue
+        side = np.where(upper_side[index], 1.0, -1.0)
         excess = np.maximum(reach - high, low - reach)
         worst = np.argmax(excess)
         if excess[worst] > FEASIBILITY_SLACK:   # the most violated bound joins the set
             if active[worst]:
                 return step, active, upper_side, NO_KKT_POINT  # active rows in conflict
+            joining_upper = reach[worst] > high[worst]
+            leaving = _leaving_bound(orthogonal, triangular, order, rank,
+                                     rows[worst] if joining_upper else -rows[worst],
+                                     multiplier, side)
+            if leaving >= 0:
+                active[index[leaving]] = False
             active[worst] = True
-            upper_side[worst] = reach[worst] > high[worst]
+            upper_side[worst] = joining_upper
             joined = worst
             continue
-        side = np.where(upper_side[index], 1.0, -1.0)
         signed = multiplier * side
         certified = np.all(signed >= -slack)
         if not certified and rank < len(index):  # dependent rows: other multipliers may
@@ -495,7 +503,7 @@ def _on_active_rows(hessian, gradient, active_rows, value, leading):
     """argmin 1/2 y^T H y - g^T y subject to active_rows y = value (least squares on
     dependent rows), by the nullspace method on a pivoted QR of active_rows^T (row
     `leading` pivoted first, if >= 0): (y, one set of multipliers mu with active_rows^T mu
-    = g - H y, rank of active_rows)."""
+    = g - H y, the factorization (Q, R, order, rank) of _pivoted_qr)."""
     variables = len(gradient)
     orthogonal, triangular, order, rank = _pivoted_qr(np.ascontiguousarray(active_rows.T),
                                                       leading)
@@ -515,7 +523,31 @@ def _on_active_rows(hessian, gradient, active_rows, value, leading):
     multiplier = np.zeros(len(value))
     multiplier[order[:rank]] = _basic_solution(orthogonal, triangular, rank,
                                                gradient - hessian @ step)
-    return step, multiplier, rank
+    return step, multiplier, (orthogonal, triangular, order, rank)
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _leaving_bound(orthogonal, triangular, order, rank, joining, multiplier, side):
+    """Index (into the active rows of a _pivoted_qr factorization, their multipliers and
+    sides +-1) of the bound that a joining one replaces when its outward normal `joining`
+    depends on the active rows (Goldfarb and Idnani's dual step): with joining =
+    sum_i c_i side_i (side_i row_i), the one of least lambda_i / (c_i side_i) over
+    c_i side_i > 0, lambda_i = multiplier_i side_i (the first multiplier that raising the
+    joining one's drives to 0); -1 when joining is independent of the active rows (none
+    has to leave) or no c_i side_i is positive. Without it, two dependent bounds that
+    cannot both hold replace each other in turn until the polish gives up."""
+    outside = np.ascontiguousarray(orthogonal[:, rank:].T) @ joining
+    if np.sqrt(np.sum(outside * outside)) > RANK_RELATIVE * np.sqrt(np.sum(joining * joining)):
+        return -1
+    coefficients = np.zeros(len(side))
+    coefficients[order[:rank]] = _basic_solution(orthogonal, triangular, rank, joining)
+    share = coefficients * side
+    threshold = RANK_RELATIVE * np.max(np.abs(share)) if len(share) else 0.0
+    leaving, least = -1, np.inf
+    for i in range(len(side)):
+        if share[i] > threshold and multiplier[i] * side[i] / share[i] < least:
+            leaving, least = i, multiplier[i] * side[i] / share[i]
+    return leaving
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
