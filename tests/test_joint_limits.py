@@ -196,18 +196,22 @@ def test_same_input_gives_bitwise_identical_output(talos):
     assert first.tobytes() == second.tobytes()
 
 
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
 @pytest.mark.parametrize("strategy", LIMITING_STRATEGIES)
 @PROPERTY
 @given(seed=SEEDS, reachable=st.booleans(), dt=st.sampled_from([None, 0.002]),
        locked=st.sampled_from([(), ("torso_2_joint", "arm_right_4_joint")]))
-def test_the_compiled_clamping_loop_gives_the_python_loops_bits(talos, strategy, seed,
-                                                                reachable, dt, locked):
-    """PIKSolver runs the clamping loop in one compiled call when it can (damped least
-    squares, 1-DoF limits only): every step gives the same bits as the general loop."""
+def test_the_compiled_clamping_loop_gives_the_python_loops_bits(talos, hierarchy, strategy,
+                                                                seed, reachable, dt, locked):
+    """PIKSolver runs the clamping loop in one compiled call when it can (1-DoF limits
+    only; damped least squares, or the QP hierarchy until a solution's levels leave its
+    bounds, the general loop going on from there): every step gives the same bits as the
+    general loop."""
     start = random_start(talos, np.random.default_rng(seed))
     solvers = []
     for one_call in (True, False):
-        solver = PIKSolver(talos, strategy=strategy, dt=dt, locked_joints=locked)
+        solver = PIKSolver(talos, strategy=strategy, dt=dt, locked_joints=locked,
+                           hierarchy=hierarchy)
         assert solver._one_call_loop
         solver._one_call_loop = one_call
         solver.set_stack(hands_stack(), start)
@@ -220,6 +224,7 @@ def test_the_compiled_clamping_loop_gives_the_python_loops_bits(talos, strategy,
             assert getattr(compiled, field).tobytes() == getattr(general, field).tobytes()
         assert compiled.clamping_iterations == general.clamping_iterations
         assert compiled.velocity_scale == general.velocity_scale
+        assert compiled.binding_constraints == general.binding_constraints
         assert [level.step_residual_norm for level in compiled.levels] == \
             [level.step_residual_norm for level in general.levels]
         q = compiled.q

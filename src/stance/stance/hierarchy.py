@@ -161,6 +161,24 @@ def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_valu
 
 
 @numba.njit(cache=True)
+def levels_within_bounds(level_starts, fixed, lower, upper):
+    """Whether a solution's levels respect per-DoF bounds on dq (nv each): for every DoF not
+    fixed, 0 within [lower, upper] and each level's dq (level_starts: (levels + 1) x nv,
+    the start then each level's result) inside them or not further out than the level
+    before left it. QPHierarchy keeps the unconstrained solution exactly then."""
+    for dof in range(len(fixed)):
+        if fixed[dof]:
+            continue
+        if lower[dof] > 0.0 or upper[dof] < 0.0:
+            return False
+        for level in range(level_starts.shape[0] - 1):
+            before, after = level_starts[level, dof], level_starts[level + 1, dof]
+            if after < min(lower[dof], before) or after > max(upper[dof], before):
+                return False
+    return True
+
+
+@numba.njit(cache=True)
 def _free_axes(fixed):
     """nv x (free joints) basis of the free joints' axes."""
     basis = np.zeros((len(fixed), len(fixed) - int(fixed.sum())))

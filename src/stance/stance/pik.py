@@ -27,7 +27,7 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from .hierarchy import DampedHierarchy, HierarchySolution, solve_compiled
+from .hierarchy import DampedHierarchy, HierarchySolution, levels_within_bounds, solve_compiled
 from .limits import RevoluteLimits, fix_joints, make_strategy
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
@@ -121,8 +121,11 @@ class PIKSolver:
         self.tasks = {}
         self._needs_com = False
         self._layout = self._make_layout()
-        # the clamping loop in one compiled call: damped least squares, 1-DoF limits only
-        self._one_call_loop = (isinstance(self.hierarchy, DampedHierarchy)
+        self._uses_bounds = getattr(self.hierarchy, "uses_bounds", False)
+        # the clamping loop in one compiled call: damped least squares (QPHierarchy: while
+        # its unconstrained solves stay within the bounds), 1-DoF limits only
+        self._one_call_loop = (isinstance(getattr(self.hierarchy, "unconstrained",
+                                                  self.hierarchy), DampedHierarchy)
                                and self.limit_models == [self.limits])
 
     @property
@@ -182,18 +185,20 @@ class PIKSolver:
         extra = self.strategy.extra_levels(self, q)
         if extra:
             jacobian, target, offsets = _append_levels(jacobian, target, offsets, extra)
-        bounds = self._dq_bounds(q) if getattr(self.hierarchy, "uses_bounds", False) else None
+        bounds = self._dq_bounds(q) if self._uses_bounds else None
         nv = robot.model.nv
         fixed = np.zeros(nv, dtype=bool)
         fixed[self._locked_v] = True        # at 0, like a clamped joint, from the start
         fixed_dq = np.zeros(nv)
         h = np.zeros(nv)
+        solution, iterations = None, 0
         if self._one_call_loop and self.strategy.enforces_limits:
             solution, iterations = self._compiled_clamping(q, jacobian, target, offsets,
-                                                           fixed, fixed_dq, h)
-        else:
-            solution, iterations = self._clamping(q, jacobian, target, offsets, bounds,
-                                                  fixed, fixed_dq, h)
+                                                           fixed, fixed_dq, h, bounds)
+        if solution is None:    # the general loop, or where a compiled one met a bound
+            solution, more = self._clamping(q, jacobian, target, offsets, bounds, fixed,
+                                            fixed_dq, h)
+            iterations += more
 
         dq, scale = self._within_velocity_limits(solution, fixed_dq)
         step_residuals = solution.step_residuals if scale == 1.0 else \
@@ -228,15 +233,23 @@ class PIKSolver:
             if not changed:
                 return solution, iterations
 
-    def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h):
-        """_clamping in one compiled call, when the hierarchy is DampedHierarchy and the
-        1-DoF joints are the only limit models: the same kernels in the same order, so the
-        same bits, without the Python around each solution and limit pass."""
-        hierarchy, limits = self.hierarchy, self.limits
-        dq, level_steps, residuals, iterations = _clamping_loop(
+    def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h,
+                           bounds=None):
+        """_clamping in one compiled call, when the 1-DoF joints are the only limit models
+        and the hierarchy is DampedHierarchy, or QPHierarchy (bounds: its (lower, upper))
+        as long as its unconstrained solves are what it keeps: the same kernels in the
+        same order, so the same bits, without the Python around each solution and limit
+        pass. (HierarchySolution, solutions), or (None, solutions before the one that met a
+        bound), fixed, fixed_dq and h then ready for _clamping to solve it again."""
+        unconstrained, limits = getattr(self.hierarchy, "unconstrained", self.hierarchy), \
+            self.limits
+        lower, upper = (np.zeros(0), np.zeros(0)) if bounds is None else bounds
+        dq, level_steps, residuals, iterations, within = _clamping_loop(
             jacobian, target, offsets, q, limits.indices, limits.table,
-            self.strategy.progressive, fixed, fixed_dq, h, hierarchy.damping,
-            hierarchy.rank_tolerance)
+            self.strategy.progressive, fixed, fixed_dq, h, unconstrained.damping,
+            unconstrained.rank_tolerance, lower, upper)
+        if not within:
+            return None, iterations
         return HierarchySolution(dq=dq, step_residuals=residuals,
                                  level_steps=level_steps), iterations
 
@@ -255,7 +268,8 @@ class PIKSolver:
         self.limits.keep_inside(q, q.copy())
         if self._one_call_loop:   # the strategy can change at run time
             self._compiled_clamping(q, self._jacobian, self._target, self._layout.offsets,
-                                    np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv))
+                                    np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv),
+                                    self._dq_bounds(q) if self._uses_bounds else None)
         for model in self.limit_models[1:]:
             model.warm_up(q)
         if hasattr(self.hierarchy, "warm_up"):   # QPHierarchy: kernels of binding bounds
@@ -363,11 +377,13 @@ class PIKSolver:
 
 @numba.njit(cache=True)
 def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, progressive,
-                   fixed, fixed_dq, h, damping, rank_tolerance):
+                   fixed, fixed_dq, h, damping, rank_tolerance, lower, upper):
     """PIKSolver._clamping for DampedHierarchy and RevoluteLimits (the indices and table
     of limits.fix_joints) in one call: each solution restarts from the previous one's
     levels (hierarchy.solve_compiled); fixed, fixed_dq and h (nv) are filled in place.
-    Returns (dq, level_steps, residuals, solutions)."""
+    lower, upper: QPHierarchy's bounds on dq (nv each; empty: none), the loop stopping
+    before the limit pass of a solution whose levels leave them (levels_within_bounds).
+    Returns (dq, level_steps, residuals, solutions kept, whether all stayed within)."""
     nv, levels = jacobian.shape[1], len(offsets) - 1
     level_bases = np.empty((levels, nv, nv))
     level_ranks = np.zeros(levels, dtype=np.int64)
@@ -380,10 +396,12 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
         dq = solve_compiled(jacobian, target, offsets, now_fixed, values, solved_fixed,
                             solved_values, level_bases, level_ranks, level_starts,
                             level_steps, residuals, damping, rank_tolerance)
+        if len(lower) and not levels_within_bounds(level_starts, now_fixed, lower, upper):
+            return dq, level_steps, residuals, solutions, False
         solutions += 1
         if fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
                       h) == 0:
-            return dq, level_steps, residuals, solutions
+            return dq, level_steps, residuals, solutions, True
         solved_fixed, solved_values = now_fixed, values
 
 

@@ -58,7 +58,7 @@ from proxsuite import proxqp
 
 from .hierarchy import (REORDERING, DampedHierarchy, HierarchySolution, Level, _damped_gram,
                         _damped_least_squares, _nullspace_update, _sparse_rows_product,
-                        _spd_solve, _times, stack_levels)
+                        _spd_solve, _times, levels_within_bounds, stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
 # ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
@@ -131,7 +131,7 @@ class QPHierarchy:
         self.dof_names = None if dof_names is None else list(dof_names)
         self.velocity_steps = None if velocity_steps is None else np.asarray(velocity_steps,
                                                                              dtype=float)
-        self._unconstrained = DampedHierarchy(damping, rank_tolerance)
+        self.unconstrained = DampedHierarchy(damping, rank_tolerance)  # kept where it fits
         self._qps = {}
         # ProxSuite objects still alive when the interpreter exits make nanobind report
         # them as leaks: drop them first (atexit runs before modules are torn down)
@@ -164,12 +164,10 @@ class QPHierarchy:
         free = np.ones(nv, dtype=bool)
         free[np.asarray(fixed_index, dtype=int)] = False
         lower, upper = _checked_bounds(bounds, nv)
-        if np.all((lower[free] <= 0.0) & (upper[free] >= 0.0)):
-            solution = self._unconstrained.solve_stacked(jacobian, target, offsets,
-                                                         fixed_index, fixed_dq,
-                                                         previous=previous)
-            if _levels_within(solution.restart.level_starts, free, lower, upper):
-                return solution
+        solution = self.unconstrained.solve_stacked(jacobian, target, offsets, fixed_index,
+                                                    fixed_dq, previous=previous)
+        if levels_within_bounds(solution.restart.level_starts, ~free, lower, upper):
+            return solution
         return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
                              upper)
 
@@ -276,16 +274,6 @@ class QPHierarchy:
                 dof_name = self.dof_names[dof] if self.dof_names else f"dof{dof}"
                 names.append(f"{dof_name} {'velocity' if velocity else side}")
         return names
-
-
-def _levels_within(level_starts, free, lower, upper) -> bool:
-    """Whether each level's dq (level_starts: (levels + 1) x nv, the start then each level's
-    result) keeps the free DoFs inside [lower, upper], or not further out than the level
-    before left them: the cascade's test for keeping a level's unconstrained step."""
-    before = level_starts[:-1, free]
-    after = level_starts[1:, free]
-    return bool(np.all((after >= np.minimum(lower[free], before))
-                       & (after <= np.maximum(upper[free], before))))
 
 
 def _checked_bounds(bounds, nv: int):
