@@ -71,7 +71,7 @@ FEASIBILITY_SLACK = 1e-12    # rad or m: polished y may exceed a bound by this m
 MULTIPLIER_SLACK = 1e-12     # relative to |gradient|: tolerated wrong-sign multiplier; it can
 #                              move the optimum by up to itself / damping^2 where only the
 #                              damping weighs (1e-9 let two certified answers differ by 6e-4)
-POLISH_ROUNDS = 16           # active set corrections tried by the polish
+POLISH_ROUNDS = 48           # active set corrections tried by the polish
 ACTIVE_SET_ITERATIONS = 4    # x (variables + bound rows): cap of the exact active-set solve
 STEP_TOLERANCE = 1e-13       # relative: an active-set step this small is a stationary point
 BINDING_TOLERANCE = 1e-9     # rad or m: a dq this close to a bound is on it
