@@ -87,7 +87,10 @@ class PIKSolver:
     hierarchy: the prioritized solver: "svd" (DampedHierarchy, damped least squares),
         "qp" (QPHierarchy on ProxSuite, with joint and velocity bounds as inequalities), or
         an object with solve_stacked(); one whose `uses_bounds` is true also receives
-        per-DoF bounds on dq.
+        per-DoF bounds on dq, and one with an `unconstrained` DampedHierarchy (as
+        QPHierarchy) must return that hierarchy's solution wherever its levels stay within
+        the bounds (hierarchy.levels_within_bounds): the compiled clamping loop relies on
+        it.
     limit_models: limit models beyond the robot's 1-DoF joints (e.g. swing joints, joint
         groups, which take their joints from the revolute model); their DoFs must not
         overlap. Each has v_index, dof_names, fix(), keep_inside() and warm_up(q), as
