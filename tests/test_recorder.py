@@ -55,6 +55,15 @@ def raw_messages(mcap_path):
         return messages, reader.get_summary()
 
 
+def test_batch_period_out_of_range_is_refused_before_any_file(tmp_path):
+    bag_dir = tmp_path / "bag"
+    done = subprocess.run(["stance", "record", "-o", str(bag_dir), "--all",
+                           "--batch-period", "5"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert "--batch-period must be within [0, 1] s" in done.stderr
+    assert not bag_dir.exists()
+
+
 def test_message_definition_embeds_each_dependency_once():
     text = message_definition("stance_msgs/msg/SolverStatus")
     share = Path(get_package_share_directory("stance_msgs"))

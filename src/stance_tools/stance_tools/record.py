@@ -6,6 +6,12 @@ Design, chosen so that a recording never loses a message without saying so:
   no deserialization; the message class is imported only to get the type support.
 - The DDS callback only counts and enqueues. One writer thread owns the file and drains an
   unbounded queue, so disk or encoding latency never backs up into the DDS reader queues.
+- Messages are taken in batches: the executor wakes at most once per ``--batch-period``
+  (10 ms by default) and a topic's callback takes every message its reader holds (up to
+  TAKEN_PER_CALLBACK). Waking rclpy's executor once per message cost about 0.4 ms of Python
+  each, 40 % of a core for two 500 Hz streams; batched, about 9 %. KEEP_ALL readers hold
+  the messages meanwhile; log times are when a batch is taken (up to a period late), the
+  publish times (the DDS source timestamps) stay exact.
 - Subscriptions use KEEP_ALL history and the publishers' reliability and durability (reliable
   if all publishers are, transient local if all are: latched topics such as
   /robot_description are captured even when published before the recorder started).
@@ -234,6 +240,9 @@ def import_message_class(type_name):
     return getattr(importlib.import_module(f"{package}.{namespace}"), name)
 
 
+TAKEN_PER_CALLBACK = 256  # messages a callback takes besides its own before other topics' turn
+
+
 def is_hidden(topic):
     """Hidden topics (a name part starting with '_') are left out of --all, as in rosbag2."""
     return any(part.startswith("_") for part in topic.split("/"))
@@ -331,6 +340,21 @@ class Recorder:
                  f"{qos.durability.name.lower()}")
 
     def _on_message(self, counters, data, info):
+        """The executor's message, then the ones the topic's reader holds besides."""
+        self._received(counters, data, info)
+        self._take_held(counters, TAKEN_PER_CALLBACK)
+
+    def _take_held(self, counters, most):
+        """Take up to `most` messages the topic's reader holds."""
+        subscription = counters.subscription
+        with subscription.handle:
+            for _ in range(most):
+                taken = subscription.handle.take_message(subscription.msg_type, True)
+                if taken is None:
+                    return
+                self._received(counters, *taken)
+
+    def _received(self, counters, data, info):
         if not counters.received:
             counters.first_sequence = info.get("publication_sequence_number")
         counters.received += 1
@@ -361,8 +385,10 @@ class Recorder:
         return sorted((self._wanted or set()) - set(self.topics) - set(self.skipped))
 
     def stop(self):
-        """Unsubscribe, write everything queued, close the bag; returns its metadata."""
+        """Take what the readers still hold (a batch period's worth), unsubscribe, write
+        everything queued, close the bag; returns its metadata."""
         for counters in self.topics.values():
+            self._take_held(counters, 64 * TAKEN_PER_CALLBACK)  # seconds of a 500 Hz stream
             self._node.destroy_subscription(counters.subscription)
         self._queue.put(None)
         self._writer.join()
@@ -413,11 +439,17 @@ def add_arguments(parser):
                         help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     parser.add_argument("--discovery-period", type=float, default=0.2, metavar="S",
                         help="seconds between two searches for new topics (default 0.2)")
+    parser.add_argument("--batch-period", type=float, default=0.01, metavar="S",
+                        help="seconds between two wake-ups taking messages (default 0.01; "
+                             "0: one wake-up per message, at several times the CPU)")
 
 
 def run(args):
     if bool(args.all) == bool(args.topics):
         print("stance record: give either --all or a list of topics", file=sys.stderr)
+        return 2
+    if not 0.0 <= args.batch_period <= 1.0:
+        print("stance record: --batch-period must be within [0, 1] s", file=sys.stderr)
         return 2
     try:
         bag = BagWriter(args.output)
@@ -440,6 +472,8 @@ def run(args):
         deadline = time.monotonic() + (args.duration if args.duration is not None else math.inf)
         while not stop.is_set() and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=min(0.1, max(0.0, deadline - time.monotonic())))
+            if args.batch_period > 0.0:
+                stop.wait(args.batch_period)   # let messages gather: one wake-up takes them
     finally:
         metadata = recorder.stop()
         executor.shutdown()
