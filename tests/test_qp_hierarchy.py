@@ -331,19 +331,24 @@ def test_polish_lets_a_joining_bound_replace_the_one_it_conflicts_with():
     np.testing.assert_allclose(step, [0.3], atol=1e-15)
 
 
-def test_polish_drops_the_bound_a_dependent_joining_one_makes_redundant():
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_polish_drops_the_bound_a_dependent_joining_one_makes_redundant(side):
     """y wants (0, 10) under A: y1 + y2 <= 2, B: -y1 + y2 <= 2 and w: 3 y2 <= 9; the
     optimum (0, 2) is on A and B only. Hot-started on {w, A}, B joins and depends on both:
     it must replace w (the only one the dual step can drive to 0), not A. Replacing the
-    last pivoted row instead swaps A and B forever."""
+    last pivoted row instead swaps A and B forever. side -1: the same on lower bounds
+    (target, bounds and optimum negated)."""
     rows = np.array([[0.0, 3.0], [1.0, 1.0], [-1.0, 1.0]])     # w, A, B
+    bounds = np.array([9.0, 2.0, 2.0])
+    low, high = (np.full(3, -10.0), bounds) if side > 0 else (-bounds, np.full(3, 10.0))
+    on_upper = np.array([True, True, False]) & (side > 0)
     step, active, upper_side, status = _polish(
-        np.eye(2), np.array([0.0, 10.0]), DAMPING, rows, np.full(3, -10.0),
-        np.array([9.0, 2.0, 2.0]), np.array([True, True, False]),
-        np.array([True, True, False]), 1e-12)
+        np.eye(2), np.array([0.0, 10.0 * side]), DAMPING, rows, low, high,
+        np.array([True, True, False]), on_upper, 1e-12)
     assert status == CERTIFIED
-    assert list(active) == [False, True, True] and all(upper_side[1:])
-    np.testing.assert_allclose(step, [0.0, 2.0], atol=1e-12)
+    assert list(active) == [False, True, True]
+    assert list(upper_side[1:]) == [side > 0] * 2
+    np.testing.assert_allclose(step, [0.0, 2.0 * side], atol=1e-12)
 
 
 def test_nonnegative_residual_survives_a_column_left_out_by_the_rank_cut():

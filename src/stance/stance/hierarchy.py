@@ -126,6 +126,16 @@ class DampedHierarchy:
                                  restart=state)
 
 
+def restartable_solution(jacobian, target, fixed, values, dq, residuals, level_steps,
+                         level_bases, level_ranks, level_starts) -> HierarchySolution:
+    """A solution that solve_compiled left in these arrays (fixed, values: its fixed joints
+    and their variations, nv each), with the state a later solve_stacked(previous=...)
+    restarts from."""
+    return HierarchySolution(dq=dq, step_residuals=residuals, level_steps=level_steps,
+                             restart=_RestartState(jacobian, target, fixed, values,
+                                                   level_bases, level_ranks, level_starts))
+
+
 def stack_levels(levels, nv: int):
     """Stack levels into one Jacobian (rows x nv), one target and row offsets per level."""
     offsets = np.zeros(len(levels) + 1, dtype=np.int64)

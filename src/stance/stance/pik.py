@@ -27,7 +27,8 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from .hierarchy import DampedHierarchy, HierarchySolution, levels_within_bounds, solve_compiled
+from .hierarchy import (DampedHierarchy, HierarchySolution, levels_within_bounds,
+                        restartable_solution, solve_compiled)
 from .limits import RevoluteLimits, fix_joints, make_strategy
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
@@ -194,13 +195,13 @@ class PIKSolver:
         fixed[self._locked_v] = True        # at 0, like a clamped joint, from the start
         fixed_dq = np.zeros(nv)
         h = np.zeros(nv)
-        solution, iterations = None, 0
+        solution, iterations, finished = None, 0, False
         if self._one_call_loop and self.strategy.enforces_limits:
-            solution, iterations = self._compiled_clamping(q, jacobian, target, offsets,
-                                                           fixed, fixed_dq, h, bounds)
-        if solution is None:    # the general loop, or where a compiled one met a bound
+            solution, iterations, finished = self._compiled_clamping(
+                q, jacobian, target, offsets, fixed, fixed_dq, h, bounds)
+        if not finished:    # the general loop, or on from a compiled solution out of bounds
             solution, more = self._clamping(q, jacobian, target, offsets, bounds, fixed,
-                                            fixed_dq, h)
+                                            fixed_dq, h, solution)
             iterations += more
 
         dq, scale = self._within_velocity_limits(solution, fixed_dq)
@@ -218,11 +219,13 @@ class PIKSolver:
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
                           binding_constraints=solution.binding)
 
-    def _clamping(self, q, jacobian, target, offsets, bounds, fixed, fixed_dq, h):
+    def _clamping(self, q, jacobian, target, offsets, bounds, fixed, fixed_dq, h,
+                  solution=None):
         """Step 3 (module docstring) for any hierarchy, limit models and strategy: the
         final HierarchySolution and how many solutions it took; fixed, fixed_dq and h (nv
-        each) filled in place."""
-        iterations, solution = 0, None
+        each) filled in place. solution: a restartable one with these fixed joints (the
+        compiled loop's), which the first solve restarts from."""
+        iterations = 0
         while True:
             index = fixed.nonzero()[0]
             restart = {} if getattr(solution, "restart", None) is None else \
@@ -242,19 +245,27 @@ class PIKSolver:
         and the hierarchy is DampedHierarchy, or QPHierarchy (bounds: its (lower, upper))
         as long as its unconstrained solves are what it keeps: the same kernels in the
         same order, so the same bits, without the Python around each solution and limit
-        pass. (HierarchySolution, solutions), or (None, solutions before the one that met a
-        bound), fixed, fixed_dq and h then ready for _clamping to solve it again."""
+        pass. Returns (HierarchySolution, solutions, finished): finished, the final one;
+        else the first solution whose levels left the bounds, not counted and restartable,
+        fixed, fixed_dq and h as it was solved with, for _clamping to go on from (its solve
+        restarts at no level: the same bits, the same decision). NaN bounds go to
+        _clamping (which refuses them) at once."""
         unconstrained, limits = getattr(self.hierarchy, "unconstrained", self.hierarchy), \
             self.limits
         lower, upper = (np.zeros(0), np.zeros(0)) if bounds is None else bounds
-        dq, level_steps, residuals, iterations, within = _clamping_loop(
+        if np.isnan(lower).any() or np.isnan(upper).any():
+            return None, 0, False
+        (dq, level_steps, residuals, iterations, within, solved_fixed, solved_values,
+         level_bases, level_ranks, level_starts) = _clamping_loop(
             jacobian, target, offsets, q, limits.indices, limits.table,
             self.strategy.progressive, fixed, fixed_dq, h, unconstrained.damping,
             unconstrained.rank_tolerance, lower, upper)
-        if not within:
-            return None, iterations
-        return HierarchySolution(dq=dq, step_residuals=residuals,
-                                 level_steps=level_steps), iterations
+        if within:
+            return HierarchySolution(dq=dq, step_residuals=residuals,
+                                     level_steps=level_steps), iterations, True
+        return restartable_solution(jacobian, target, solved_fixed, solved_values, dq,
+                                    residuals, level_steps, level_bases, level_ranks,
+                                    level_starts), iterations, False
 
     def warm_up(self, q: np.ndarray) -> None:
         """Compile (or load from numba's disk cache) the step's kernels, including the
@@ -386,7 +397,9 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
     levels (hierarchy.solve_compiled); fixed, fixed_dq and h (nv) are filled in place.
     lower, upper: QPHierarchy's bounds on dq (nv each; empty: none), the loop stopping
     before the limit pass of a solution whose levels leave them (levels_within_bounds).
-    Returns (dq, level_steps, residuals, solutions kept, whether all stayed within)."""
+    Returns (dq, level_steps, residuals, solutions kept, whether all stayed within, then
+    the last solution's fixed joints, their variations, level bases, ranks and starts:
+    hierarchy.restartable_solution's)."""
     nv, levels = jacobian.shape[1], len(offsets) - 1
     level_bases = np.empty((levels, nv, nv))
     level_ranks = np.zeros(levels, dtype=np.int64)
@@ -399,12 +412,13 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
         dq = solve_compiled(jacobian, target, offsets, now_fixed, values, solved_fixed,
                             solved_values, level_bases, level_ranks, level_starts,
                             level_steps, residuals, damping, rank_tolerance)
-        if len(lower) and not levels_within_bounds(level_starts, now_fixed, lower, upper):
-            return dq, level_steps, residuals, solutions, False
-        solutions += 1
-        if fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
-                      h) == 0:
-            return dq, level_steps, residuals, solutions, True
+        within = not len(lower) or levels_within_bounds(level_starts, now_fixed, lower, upper)
+        if within:
+            solutions += 1
+        if not within or fix_joints(q, dq, limit_indices, limit_table, progressive, fixed,
+                                    fixed_dq, h) == 0:
+            return (dq, level_steps, residuals, solutions, within, now_fixed, values,
+                    level_bases, level_ranks, level_starts)
         solved_fixed, solved_values = now_fixed, values
 
 
