@@ -55,12 +55,31 @@ def raw_messages(mcap_path):
         return messages, reader.get_summary()
 
 
+def test_messages_held_at_stop_are_recorded(processes, tmp_path):
+    """With a 10 s batch period the whole stream waits in the readers (taken at the
+    recorder's first wake-up, before the stream, and at its stop); stopped as soon as the
+    publisher's last message is acknowledged, the recorder writes every one: it empties the
+    readers before unsubscribing."""
+    bag_dir = tmp_path / "held"
+    publisher = processes.start(sys.executable, str(HELPERS / "publish_stream.py"), "--rate", "500",
+                                 "--duration", "1", "--start-delay", "1.5", name="publisher")
+    wait_until(lambda: "latched" in log_text(publisher), 20, what="the latched publication")
+    recorder = processes.start("stance", "record", "-o", str(bag_dir), "--all",
+                               "--batch-period", "10", name="recorder")
+    wait_until(lambda: log_text(publisher).rstrip().endswith("}"), 30,
+               what="the publisher's acknowledged counts")
+    assert processes.stop(recorder) == 0, log_text(recorder)
+    published = json.loads(log_text(publisher).strip().splitlines()[-1])
+    messages, _ = raw_messages(bag_dir / "held_0.mcap")
+    assert {name: len(messages[name]) for name in published} == published
+
+
 def test_batch_period_out_of_range_is_refused_before_any_file(tmp_path):
     bag_dir = tmp_path / "bag"
     done = subprocess.run(["stance", "record", "-o", str(bag_dir), "--all",
-                           "--batch-period", "5"], capture_output=True, text=True, timeout=60)
+                           "--batch-period", "11"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
-    assert "--batch-period must be within [0, 1] s" in done.stderr
+    assert "--batch-period must be within [0, 10] s" in done.stderr
     assert not bag_dir.exists()
 
 

@@ -6,12 +6,14 @@ Design, chosen so that a recording never loses a message without saying so:
   no deserialization; the message class is imported only to get the type support.
 - The DDS callback only counts and enqueues. One writer thread owns the file and drains an
   unbounded queue, so disk or encoding latency never backs up into the DDS reader queues.
-- Messages are taken in batches: the executor wakes at most once per ``--batch-period``
-  (10 ms by default) and a topic's callback takes every message its reader holds (up to
-  TAKEN_PER_CALLBACK). Waking rclpy's executor once per message cost about 0.4 ms of Python
-  each, 40 % of a core for two 500 Hz streams; batched, about 9 %. KEEP_ALL readers hold
-  the messages meanwhile; log times are when a batch is taken (up to a period late), the
-  publish times (the DDS source timestamps) stay exact.
+- Messages are taken in batches: once per ``--batch-period`` (10 ms by default) the main
+  loop runs one executor wake-up (timers, lost-message events) and takes every message
+  each topic's reader holds. Waking rclpy's executor once per message cost about 0.4 ms of
+  Python each, 40 % of a core for two 500 Hz streams; batched, about 9 %. KEEP_ALL readers
+  hold the messages meanwhile; log times are when a batch is taken (about a period late at
+  most), the publish times (the DDS source timestamps) stay exact. At exit the readers are
+  emptied before unsubscribing; one a publisher still outpaces after STOP_DRAIN_SECONDS
+  makes the recording incomplete.
 - Subscriptions use KEEP_ALL history and the publishers' reliability and durability (reliable
   if all publishers are, transient local if all are: latched topics such as
   /robot_description are captured even when published before the recorder started).
@@ -240,7 +242,8 @@ def import_message_class(type_name):
     return getattr(importlib.import_module(f"{package}.{namespace}"), name)
 
 
-TAKEN_PER_CALLBACK = 256  # messages a callback takes besides its own before other topics' turn
+TAKEN_PER_CALL = 4096      # messages taken from one reader before the next reader's turn
+STOP_DRAIN_SECONDS = 1.0   # at exit, time to empty the readers before unsubscribing
 
 
 def is_hidden(topic):
@@ -263,6 +266,7 @@ class TopicCounters:
     lost: int | None = 0
     single_latched_publisher: bool = False
     first_sequence: int | None = None
+    unread_at_exit: bool = False   # its reader still held messages after STOP_DRAIN_SECONDS
 
     def lost_before_joining(self) -> int:
         """Reported losses that are messages published before the recorder joined and no
@@ -339,22 +343,23 @@ class Recorder:
         log.info(f"recording {name} [{type_name}] {qos.reliability.name.lower()} "
                  f"{qos.durability.name.lower()}")
 
-    def _on_message(self, counters, data, info):
-        """The executor's message, then the ones the topic's reader holds besides."""
-        self._received(counters, data, info)
-        self._take_held(counters, TAKEN_PER_CALLBACK)
+    def take_held(self):
+        """Take the messages every topic's reader holds (up to TAKEN_PER_CALL each)."""
+        for counters in self.topics.values():
+            self._take_held(counters)
 
-    def _take_held(self, counters, most):
-        """Take up to `most` messages the topic's reader holds."""
+    def _take_held(self, counters) -> bool:
+        """Take up to TAKEN_PER_CALL messages the topic's reader holds; True if it is empty."""
         subscription = counters.subscription
         with subscription.handle:
-            for _ in range(most):
+            for _ in range(TAKEN_PER_CALL):
                 taken = subscription.handle.take_message(subscription.msg_type, True)
                 if taken is None:
-                    return
-                self._received(counters, *taken)
+                    return True
+                self._on_message(counters, *taken)
+        return False
 
-    def _received(self, counters, data, info):
+    def _on_message(self, counters, data, info):
         if not counters.received:
             counters.first_sequence = info.get("publication_sequence_number")
         counters.received += 1
@@ -385,10 +390,14 @@ class Recorder:
         return sorted((self._wanted or set()) - set(self.topics) - set(self.skipped))
 
     def stop(self):
-        """Take what the readers still hold (a batch period's worth), unsubscribe, write
-        everything queued, close the bag; returns its metadata."""
+        """Take what the readers still hold, unsubscribe, write everything queued, close
+        the bag; returns its metadata."""
+        deadline = time.monotonic() + STOP_DRAIN_SECONDS
         for counters in self.topics.values():
-            self._take_held(counters, 64 * TAKEN_PER_CALLBACK)  # seconds of a 500 Hz stream
+            while not self._take_held(counters):
+                if time.monotonic() > deadline:
+                    counters.unread_at_exit = True
+                    break
             self._node.destroy_subscription(counters.subscription)
         self._queue.put(None)
         self._writer.join()
@@ -417,7 +426,11 @@ def summary_table(recorder):
         rows.append((counters.name, counters.type, str(counters.received), str(counters.written),
                      "n/a" if lost is None else str(lost), str(counters.failed)))
         complete &= (counters.written == counters.received and not counters.failed
-                     and not lost)
+                     and not lost and not counters.unread_at_exit)
+        if counters.unread_at_exit:
+            notes.append(f"{counters.name}: messages still arrived faster than they were "
+                         f"taken {STOP_DRAIN_SECONDS:g} s after the stop; the rest is not "
+                         f"recorded")
         if before := counters.lost_before_joining():
             notes.append(f"{counters.name}: {before} message(s) "
                          f"published before the recorder joined were no longer in the "
@@ -440,16 +453,17 @@ def add_arguments(parser):
     parser.add_argument("--discovery-period", type=float, default=0.2, metavar="S",
                         help="seconds between two searches for new topics (default 0.2)")
     parser.add_argument("--batch-period", type=float, default=0.01, metavar="S",
-                        help="seconds between two wake-ups taking messages (default 0.01; "
-                             "0: one wake-up per message, at several times the CPU)")
+                        help="seconds between two takes of the messages the readers hold "
+                             "(default 0.01, at most 10: a reader holds a whole period; "
+                             "0: one executor wake-up per message, at 4x the CPU)")
 
 
 def run(args):
     if bool(args.all) == bool(args.topics):
         print("stance record: give either --all or a list of topics", file=sys.stderr)
         return 2
-    if not 0.0 <= args.batch_period <= 1.0:
-        print("stance record: --batch-period must be within [0, 1] s", file=sys.stderr)
+    if not 0.0 <= args.batch_period <= 10.0:
+        print("stance record: --batch-period must be within [0, 10] s", file=sys.stderr)
         return 2
     try:
         bag = BagWriter(args.output)
@@ -472,8 +486,11 @@ def run(args):
         deadline = time.monotonic() + (args.duration if args.duration is not None else math.inf)
         while not stop.is_set() and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=min(0.1, max(0.0, deadline - time.monotonic())))
+            recorder.take_held()
             if args.batch_period > 0.0:
                 stop.wait(args.batch_period)   # let messages gather: one wake-up takes them
+        for _ in range(2 * len(recorder.topics) + 1):  # what is ready: messages, lost events
+            executor.spin_once(timeout_sec=0.0)
     finally:
         metadata = recorder.stop()
         executor.shutdown()
