@@ -4,12 +4,12 @@ Design, chosen so that a recording never loses a message without saying so:
 
 - Raw CDR subscriptions (``raw=True``): the bytes DDS delivers go to the file as they are, with
   no deserialization; the message class is imported only to get the type support.
-- The DDS callback only counts and enqueues. One writer thread owns the file and drains an
-  unbounded queue, so disk or encoding latency never backs up into the DDS reader queues.
+- Taking a message only counts and enqueues it. One writer thread owns the file and drains
+  an unbounded queue, so disk or encoding latency never backs up into the DDS reader queues.
 - Messages are taken in batches: once per ``--batch-period`` (10 ms by default) the main
   loop runs one executor wake-up (timers, lost-message events) and takes every message
   each topic's reader holds. Waking rclpy's executor once per message cost about 0.4 ms of
-  Python each, 40 % of a core for two 500 Hz streams; batched, about 9 %. KEEP_ALL readers
+  Python each, 40 % of a core for two 500 Hz streams; batched, about 8 %. KEEP_ALL readers
   hold the messages meanwhile; log times are when a batch is taken (about a period late at
   most), the publish times (the DDS source timestamps) stay exact. At exit the readers are
   emptied before unsubscribing; one a publisher still outpaces after STOP_DRAIN_SECONDS
@@ -455,7 +455,7 @@ def add_arguments(parser):
     parser.add_argument("--batch-period", type=float, default=0.01, metavar="S",
                         help="seconds between two takes of the messages the readers hold "
                              "(default 0.01, at most 10: a reader holds a whole period; "
-                             "0: one executor wake-up per message, at 4x the CPU)")
+                             "0: no pause, about one executor wake-up per message)")
 
 
 def run(args):
