@@ -56,16 +56,17 @@ def raw_messages(mcap_path):
 
 
 def test_messages_held_at_stop_are_recorded(processes, tmp_path):
-    """With a 10 s batch period the whole stream waits in the readers (taken at the
-    recorder's first wake-up, before the stream, and at its stop); stopped as soon as the
-    publisher's last message is acknowledged, the recorder writes every one: it empties the
-    readers before unsubscribing."""
+    """With a 5 s batch period the recorder subscribes to the stream at a wake-up (its
+    discovery timer runs there; the publisher waits for it) and sleeps through the whole
+    1 s stream, which waits in the readers; stopped as soon as the publisher's last message
+    is acknowledged, the recorder writes every one: it empties the readers before
+    unsubscribing."""
     bag_dir = tmp_path / "held"
     publisher = processes.start(sys.executable, str(HELPERS / "publish_stream.py"), "--rate", "500",
                                  "--duration", "1", "--start-delay", "1.5", name="publisher")
     wait_until(lambda: "latched" in log_text(publisher), 20, what="the latched publication")
     recorder = processes.start("stance", "record", "-o", str(bag_dir), "--all",
-                               "--batch-period", "10", name="recorder")
+                               "--batch-period", "5", name="recorder")
     wait_until(lambda: log_text(publisher).rstrip().endswith("}"), 30,
                what="the publisher's acknowledged counts")
     assert processes.stop(recorder) == 0, log_text(recorder)
