@@ -128,8 +128,8 @@ class PIKSolver:
         self._uses_bounds = getattr(self.hierarchy, "uses_bounds", False)
         # the clamping loop in one compiled call: damped least squares (QPHierarchy: while
         # its unconstrained solves stay within the bounds), 1-DoF limits only
-        self._one_call_loop = (isinstance(getattr(self.hierarchy, "unconstrained",
-                                                  self.hierarchy), DampedHierarchy)
+        self._unconstrained = getattr(self.hierarchy, "unconstrained", self.hierarchy)
+        self._one_call_loop = (isinstance(self._unconstrained, DampedHierarchy)
                                and self.limit_models == [self.limits])
 
     @property
@@ -250,8 +250,7 @@ class PIKSolver:
         fixed, fixed_dq and h as it was solved with, for _clamping to go on from (its solve
         restarts at no level: the same bits, the same decision). NaN bounds go to
         _clamping (which refuses them) at once."""
-        unconstrained, limits = getattr(self.hierarchy, "unconstrained", self.hierarchy), \
-            self.limits
+        unconstrained, limits = self._unconstrained, self.limits
         lower, upper = (np.zeros(0), np.zeros(0)) if bounds is None else bounds
         if np.isnan(lower).any() or np.isnan(upper).any():
             return None, 0, False

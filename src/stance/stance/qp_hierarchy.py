@@ -533,8 +533,10 @@ def _leaving_bound(orthogonal, triangular, order, rank, joining, multiplier, sid
     threshold = RANK_RELATIVE * np.max(np.abs(share)) if len(share) else 0.0
     leaving, least = -1, np.inf
     for i in range(len(side)):
-        if share[i] > threshold and multiplier[i] * side[i] / share[i] < least:
-            leaving, least = i, multiplier[i] * side[i] / share[i]
+        if share[i] > threshold:
+            ratio = multiplier[i] * side[i] / share[i]
+            if ratio < least:
+                leaving, least = i, ratio
     return leaving
 
 
