@@ -14,9 +14,10 @@ from scipy.optimize import lsq_linear
 from helpers.problems import hierarchy_problems, residual
 from stance.hierarchy import DampedHierarchy, Level, stack_levels
 from stance.pik import PIKSolver, default_stack_specs
+from stance import qp_hierarchy
 from stance.qp_hierarchy import (CERTIFIED, COLD_MAX_ITERATIONS, INNER_MAX_ITERATIONS,
-                                 WARM_MAX_ITERATIONS, QPHierarchy, _nonnegative_residual,
-                                 _polish, robot_dof_names)
+                                 WARM_MAX_ITERATIONS, QPHierarchy, _active_set_solve,
+                                 _nonnegative_residual, _polish, robot_dof_names)
 from stance.robot import Robot
 from stance_tools.bench import (HANDS_FORWARD, TALOS_LEVEL_STACK, bench_start,
                                 level_contenders, limit_excess)
@@ -80,6 +81,43 @@ def test_first_level_is_the_bounded_damped_least_squares(problem):
     solution = QPHierarchy(damping=DAMPING).solve([level], nv, fixed_index, fixed_dq,
                                                   bounds=(lower, upper))
     np.testing.assert_allclose(solution.dq[free], reference, rtol=0, atol=1e-7)
+
+
+def test_bounds_excluding_zero_skip_the_unconstrained_solve(monkeypatch):
+    """A free DoF whose bounds exclude 0 (a direct caller's: PIKSolver's never do) makes
+    the unconstrained solution inadmissible: the cascade answers at once, and its answer
+    is the bounded damped least squares."""
+    jacobian, target = np.array([[1.0, 1.0, 0.0], [0.0, 1.0, 1.0]]), np.array([1.0, -2.0])
+    lower, upper = np.array([0.2, -1.0, -1.0]), np.array([1.0, 1.0, -0.5])
+    solver = QPHierarchy(damping=DAMPING)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("unconstrained solve run although 0 is out of bounds")
+
+    monkeypatch.setattr(solver.unconstrained, "solve_stacked", refused)
+    solution = solver.solve([Level(jacobian, target)], 3, bounds=(lower, upper))
+    stacked = np.vstack([jacobian, DAMPING * np.eye(3)])
+    reference = lsq_linear(stacked, np.concatenate([target, np.zeros(3)]),
+                           bounds=(lower, upper), method="bvls", tol=1e-14).x
+    np.testing.assert_allclose(solution.dq, reference, rtol=0, atol=1e-9)
+
+
+def test_exact_solve_says_when_it_ran_out_of_iterations(monkeypatch):
+    """The exact active-set fallback: converged with the bounded least squares optimum;
+    without iterations left, a feasible step flagged as not converged."""
+    projected, residual_ = np.array([[1.0, 2.0], [0.0, 1.0]]), np.array([3.0, 3.0])
+    rows, low, high = np.eye(2), np.full(2, -0.5), np.full(2, 0.5)
+    step, active, _, converged = _active_set_solve(projected, residual_, DAMPING, rows, low,
+                                                   high)
+    reference = lsq_linear(np.vstack([projected, DAMPING * np.eye(2)]),
+                           np.concatenate([residual_, np.zeros(2)]), bounds=(low, high),
+                           method="bvls", tol=1e-14).x
+    assert converged and active.all()
+    np.testing.assert_allclose(step, reference, rtol=0, atol=1e-12)
+    monkeypatch.setattr(qp_hierarchy, "ACTIVE_SET_ITERATIONS", 0)
+    step, _, _, converged = _active_set_solve(projected, residual_, DAMPING, rows, low, high)
+    assert not converged
+    assert np.all(step >= low) and np.all(step <= high)
 
 
 @PROPERTY

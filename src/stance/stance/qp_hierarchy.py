@@ -139,6 +139,8 @@ class QPHierarchy:
         self.qp_solves = 0        # levels ProxSuite solved (hot start failed or off)
         self.cold_starts = 0      # of which warm start failed or no QP of that size existed
         self.unpolished = 0       # of which the polish found no KKT point (solved exactly)
+        self.unconverged = 0      # of which the exact solve ran out of iterations: its step
+        #                           is feasible but not shown optimal
         self.qp_iterations = 0    # ProxSuite's inner iterations, warm and cold solves
         self._counters = np.zeros(1, dtype=np.int64)  # [hot starts], filled when compiled
         self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: kept active sets
@@ -164,10 +166,12 @@ class QPHierarchy:
         free = np.ones(nv, dtype=bool)
         free[np.asarray(fixed_index, dtype=int)] = False
         lower, upper = _checked_bounds(bounds, nv)
-        solution = self.unconstrained.solve_stacked(jacobian, target, offsets, fixed_index,
-                                                    fixed_dq, previous=previous)
-        if levels_within_bounds(solution.restart.level_starts, ~free, lower, upper):
-            return solution
+        if not np.any(free & ((lower > 0.0) | (upper < 0.0))):  # else 0 is out: cascade
+            solution = self.unconstrained.solve_stacked(jacobian, target, offsets,
+                                                        fixed_index, fixed_dq,
+                                                        previous=previous)
+            if levels_within_bounds(solution.restart.level_starts, ~free, lower, upper):
+                return solution
         return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
                              upper)
 
@@ -233,8 +237,9 @@ class QPHierarchy:
             upper_side | ((dual < -slack) & np.isfinite(low)), upper_side, slack)
         if status != CERTIFIED:  # ProxSuite's answer is not certified: solve exactly instead
             self.unpolished += 1
-            step, active, upper_side = _active_set_solve(projected, residual, self.damping,
-                                                         rows, low, high)
+            step, active, upper_side, converged = _active_set_solve(
+                projected, residual, self.damping, rows, low, high)
+            self.unconverged += not converged
         _remember(self._active_sides[level], dofs, active, upper_side)
         self._known_sides[level] = True
         return step, dofs[active]
@@ -651,27 +656,32 @@ def _nonnegative_residual(matrix, rhs, tolerance):
 
 def _active_set_solve(projected, residual, damping, rows, low, high):
     """Exact minimizer of |P y - r|^2 + damping^2 |y|^2 subject to low <= rows y <= high, its
-    active row mask and which of those rows are on their upper bound, by a primal
-    active-set method from y = 0 (feasible: low <= 0 <= high by construction). The
-    objective is strictly convex, so the optimum is unique and does not depend on any
-    solver history; used where ProxSuite's answer is not certified."""
+    active row mask, which of those rows are on their upper bound, and whether it converged,
+    by a primal active-set method from y = 0 (feasible: low <= 0 <= high by construction).
+    The objective is strictly convex, so the optimum is unique and does not depend on any
+    solver history; used where ProxSuite's answer is not certified. Out of iterations
+    (ACTIVE_SET_ITERATIONS x (variables + rows)), y is feasible and no worse than 0, but
+    not shown optimal: converged is then False."""
     variables = projected.shape[1]
     design = np.vstack([projected, damping * np.eye(variables)])
     wanted = np.concatenate([residual, np.zeros(variables)])
     y = np.zeros(variables)
     working, side = [], []          # active rows and their side: +1 upper, -1 lower
     scale = 1.0 + np.abs(projected.T @ residual).max(initial=0.0)
+    converged = False
     for _ in range(ACTIVE_SET_ITERATIONS * (variables + len(rows))):
         step = _equality_least_squares(design, wanted - design @ y, rows[working],
                                        np.zeros(len(working))) if working else \
             np.linalg.lstsq(design, wanted - design @ y, rcond=None)[0]
         if np.linalg.norm(step) <= STEP_TOLERANCE * (1.0 + np.linalg.norm(y)):
             if not working:
+                converged = True
                 break
             gradient = design.T @ (design @ y - wanted)
             outward = rows[working].T * np.array(side, dtype=float)
             multiplier = np.linalg.lstsq(outward, -gradient, rcond=None)[0]
             if np.all(multiplier >= -MULTIPLIER_SLACK * scale):
+                converged = True
                 break
             drop = int(np.argmin(multiplier))
             del working[drop], side[drop]
@@ -693,7 +703,7 @@ def _active_set_solve(projected, residual, damping, rows, low, high):
     active, upper_side = np.zeros(len(rows), dtype=bool), np.zeros(len(rows), dtype=bool)
     active[working] = True
     upper_side[[row for row, row_side in zip(working, side) if row_side > 0]] = True
-    return y, active, upper_side
+    return y, active, upper_side, converged
 
 
 def _equality_least_squares(design, wanted, equality_rows, equality_value):

@@ -432,7 +432,7 @@ def level_figures(records, contenders, steps) -> dict:
     median ratio of n levels over n - 1 levels of the same hierarchy, and for the QP
     hierarchy its counters per step over all `steps` (warm-up included): levels whose
     bounds crossed solved from their hot start, levels ProxSuite solved, its cold starts,
-    its solutions the polish could not certify."""
+    its solutions the polish could not certify, exact solves out of iterations."""
     result = {}
     for contender in contenders:
         record = records[contender.name]
@@ -445,7 +445,7 @@ def level_figures(records, contenders, steps) -> dict:
                  **{f"{counter}_per_step": (getattr(hierarchy, counter) / steps
                                             if hasattr(hierarchy, counter) else None)
                     for counter in ("hot_starts", "qp_solves", "cold_starts",
-                                    "unpolished")}}
+                                    "unpolished", "unconverged")}}
         entry["over_one_level_less"] = (entry["median_us"] / previous["median_us"]
                                         if previous else None)
         result[contender.name] = entry
@@ -455,9 +455,10 @@ def level_figures(records, contenders, steps) -> dict:
 def print_level_table(title, result) -> None:
     print(title)
     counters = ("hot_starts_per_step", "qp_solves_per_step", "cold_starts_per_step",
-                "unpolished_per_step")
+                "unpolished_per_step", "unconverged_per_step")
     print(f"{'contender':<16}{'median us':>10}{'p99 us':>10}{'max us':>10}{'iters':>7}"
-          f"{'excess rad':>12}{'x previous':>12}{'hot':>7}{'QPs':>7}{'cold':>7}{'unpol':>7}")
+          f"{'excess rad':>12}{'x previous':>12}{'hot':>7}{'QPs':>7}{'cold':>7}{'unpol':>7}"
+          f"{'uncon':>7}")
     for name, entry in result.items():
         ratio = entry["over_one_level_less"]
         print(f"{name:<16}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
@@ -517,9 +518,10 @@ def run_levels(args) -> int:
                       f"moved (0.2, 0.2, -0.2) m", results["panda"])
     print("x previous: median over the same hierarchy's median with one level less; iters: "
           "mean hierarchy solutions per step; excess: worst limit violation over the run; "
-          "hot, QPs, cold, unpol: per step (warm-up included), levels whose bounds crossed "
-          "solved from their previous active set, levels ProxSuite solved, its cold starts, "
-          "its solutions the polish could not certify")
+          "hot, QPs, cold, unpol, uncon: per step (warm-up included), levels whose bounds "
+          "crossed solved from their previous active set, levels ProxSuite solved, its cold "
+          "starts, its solutions the polish could not certify, exact solves out of "
+          "iterations (feasible, not shown optimal)")
     if args.json:
         with open(args.json, "w") as output:
             json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt,
