@@ -79,6 +79,7 @@ RANK_RELATIVE = 1e-12        # active bound rows: a pivoted QR remainder (polish
 #                              value (exact active-set solve) below this x the largest drops
 MOVABLE_ROW_NORM = 1e-12     # a DoF whose basis row is below this cannot move any more
 MAX_CACHED_QPS = 64          # persistent QPs kept (level, variables, bound rows)
+MAX_KEPT_SETS = 16           # fixed-DoF patterns whose active sets are kept
 NO_KKT_POINT, CERTIFIED, FREE = 0, 1, 2  # level outcomes: _polish's two, no bound crossed
 
 
@@ -145,6 +146,8 @@ class QPHierarchy:
         self._counters = np.zeros(1, dtype=np.int64)  # [hot starts], filled when compiled
         self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: kept active sets
         self._known_sides = np.zeros(0, dtype=np.bool_)
+        self._kept_sets = {}      # free DoFs (bytes) -> (sides, known), least recent first
+        self._bound_labels = []   # "<dof> lower|upper|velocity", 3 per DoF (_binding_codes)
 
     @classmethod
     def for_robot(cls, robot, dt: float | None = None, **options) -> QPHierarchy:
@@ -185,9 +188,7 @@ class QPHierarchy:
         bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
         basis = np.ascontiguousarray(np.eye(nv)[:, free])  # one compiled layout
         level_count = len(offsets) - 1
-        if self._active_sides.shape != (level_count, nv):
-            self._active_sides = np.zeros((level_count, nv), dtype=np.int8)
-            self._known_sides = np.zeros(level_count, dtype=np.bool_)
+        self._active_sides, self._known_sides = self._kept_for(free, level_count)
         if not self.hot_start:
             self._known_sides[:] = False
         residuals = np.zeros(level_count)
@@ -204,6 +205,25 @@ class QPHierarchy:
                                                                      upper))
             given_step, given_dofs = self._qp_level_step(level, projected, residual, basis,
                                                          dq, bounded, lower, upper)
+
+    def _kept_for(self, free, level_count):
+        """The kept active sets (levels x nv sides, levels known) for solves with these free
+        DoFs: the clamping loop's solutions of one step fix different joints, and each
+        is most like the one that fixed the same joints a step before. A new pattern
+        starts from a copy of the sets used last."""
+        nv = len(free)
+        key = free.tobytes()
+        kept = self._kept_sets.pop(key, None)
+        if kept is None or kept[0].shape != (level_count, nv):
+            last = next(reversed(self._kept_sets.values()), None)
+            kept = (last[0].copy(), last[1].copy()) \
+                if last is not None and last[0].shape == (level_count, nv) else \
+                (np.zeros((level_count, nv), dtype=np.int8),
+                 np.zeros(level_count, dtype=np.bool_))
+        self._kept_sets[key] = kept
+        if len(self._kept_sets) > MAX_KEPT_SETS:
+            del self._kept_sets[next(iter(self._kept_sets))]
+        return kept
 
     def warm_up(self) -> None:
         """Compile (or load from numba's disk cache) the cascade's kernels, by a throwaway
@@ -269,16 +289,32 @@ class QPHierarchy:
 
     def _binding_names(self, dq, enforced, lower, upper) -> list:
         """'<dof> lower|upper|velocity' for each bound a level's QP enforced that dq is on."""
-        names = []
-        for dof in np.flatnonzero(enforced):
-            for side, bound in (("lower", lower[dof]), ("upper", upper[dof])):
-                if abs(dq[dof] - bound) > BINDING_TOLERANCE:
-                    continue
-                velocity = (self.velocity_steps is not None
-                            and abs(bound) == self.velocity_steps[dof])
-                dof_name = self.dof_names[dof] if self.dof_names else f"dof{dof}"
-                names.append(f"{dof_name} {'velocity' if velocity else side}")
-        return names
+        nv = len(dq)
+        steps = np.full(nv, np.nan) if self.velocity_steps is None else self.velocity_steps
+        if len(self._bound_labels) != 3 * nv:
+            names = self.dof_names or [f"dof{dof}" for dof in range(nv)]
+            self._bound_labels = [f"{name} {kind}" for name in names
+                                  for kind in ("lower", "upper", "velocity")]
+        return [self._bound_labels[code]
+                for code in _binding_codes(dq, enforced, lower, upper, steps).tolist()]
+
+
+@numba.njit(cache=True)
+def _binding_codes(dq, enforced, lower, upper, velocity_steps):
+    """3 dof + (0 lower, 1 upper, 2 velocity: |bound| is the DoF's velocity step) for each
+    bound of an enforced DoF that dq is on (within BINDING_TOLERANCE), lower first."""
+    codes = np.empty(2 * len(dq), dtype=np.int64)
+    count = 0
+    for dof in range(len(dq)):
+        if not enforced[dof]:
+            continue
+        for side in range(2):
+            bound = upper[dof] if side else lower[dof]
+            if abs(dq[dof] - bound) > BINDING_TOLERANCE:
+                continue
+            codes[count] = 3 * dof + (2 if abs(bound) == velocity_steps[dof] else side)
+            count += 1
+    return codes[:count]
 
 
 def _checked_bounds(bounds, nv: int):
@@ -286,9 +322,18 @@ def _checked_bounds(bounds, nv: int):
     if bounds is None:
         return np.full(nv, -np.inf), np.full(nv, np.inf)
     lower, upper = (np.asarray(side, dtype=float).reshape(nv) for side in bounds)
-    if np.any(lower > upper) or np.any(np.isnan(lower)) or np.any(np.isnan(upper)):
+    if not _ordered(lower, upper):
         raise ValueError("dq bounds need lower <= upper (no NaN)")
     return lower, upper
+
+
+@numba.njit(cache=True)
+def _ordered(lower, upper):
+    """lower <= upper everywhere (False where either is NaN)."""
+    for dof in range(len(lower)):
+        if not lower[dof] <= upper[dof]:
+            return False
+    return True
 
 
 def _new_qp(shape):
