@@ -56,9 +56,9 @@ import numba
 import numpy as np
 from proxsuite import proxqp
 
-from .hierarchy import (REORDERING, DampedHierarchy, HierarchySolution, Level, _damped_gram,
+from .hierarchy import (REORDERING, DampedHierarchy, HierarchySolution, Level,
                         _damped_least_squares, _nullspace_update, _sparse_rows_product,
-                        _spd_solve, _times, levels_within_bounds, stack_levels)
+                        _times, levels_within_bounds, stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
 # ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
@@ -461,14 +461,8 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
     times: the most violated bound joins it (replacing the one _leaving_bound names when
     its row depends on the active ones), the bound with the worst wrong-sign multiplier
     leaves it. Each try minimizes in the nullspace of the active rows (_on_active_rows)."""
-    variables = projected.shape[1]
-    hessian = _damped_gram(np.ascontiguousarray(projected.T), damping * damping)
-    for i in range(variables):      # _damped_gram fills the lower triangle only
-        for j in range(i):
-            hessian[j, i] = hessian[i, j]
-    gradient = np.ascontiguousarray(projected.T) @ residual
     active, upper_side = active.copy(), upper_side.copy()
-    step = np.zeros(variables)
+    step = np.zeros(projected.shape[1])
     joined = -1                     # the bound that joined last
     for _ in range(POLISH_ROUNDS):
         index = np.flatnonzero(active)
@@ -477,8 +471,8 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         # the bound that just joined pivots first: the rows it conflicts with are then the
         # dependent ones, which miss their value and leave (it replaces them)
         leading = np.searchsorted(index, joined) if joined >= 0 and active[joined] else -1
-        step, multiplier, (orthogonal, triangular, order, rank) = _on_active_rows(
-            hessian, gradient, active_rows, value, leading)
+        step, multiplier, factorization = _on_active_rows(projected, residual, damping,
+                                                          active_rows, value, leading)
         reach = rows @ step
         missed = np.abs(reach[index] - value) > FEASIBILITY_SLACK
         if np.any(missed):          # dependent active rows that disagree: not a vertex
@@ -491,7 +485,7 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
             if active[worst]:
                 return step, active, upper_side, NO_KKT_POINT  # active rows in conflict
             joining_upper = reach[worst] > high[worst]
-            leaving = _leaving_bound(orthogonal, triangular, order, rank,
+            leaving = _leaving_bound(factorization,
                                      rows[worst] if joining_upper else -rows[worst],
                                      multiplier, side)
             if leaving >= 0:
@@ -502,20 +496,21 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
             continue
         signed = multiplier * side
         certified = np.all(signed >= -slack)
-        if not certified and rank < len(index):  # dependent rows: other multipliers may
-            outward = np.ascontiguousarray(active_rows.T * side)  # fit the signs
-            certified = _nonnegative_residual(outward, gradient - hessian @ step,
+        if not certified and factorization[4] < len(index):  # dependent rows (rank short):
+            outward = np.ascontiguousarray(active_rows.T * side)  # other multipliers may fit
+            certified = _nonnegative_residual(outward, _descent(projected, residual,
+                                                                damping, step),
                                               slack) <= slack
         if certified:
-            return _on_tight_rows(hessian, gradient, rows, low, high, reach, step, active,
-                                  upper_side, leading)
+            return _on_tight_rows(projected, residual, damping, rows, low, high, reach,
+                                  step, active, upper_side, leading)
         active[index[np.argmin(signed)]] = False
     return step, active, upper_side, NO_KKT_POINT
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _on_tight_rows(hessian, gradient, rows, low, high, reach, step, active, upper_side,
-                   leading):
+def _on_tight_rows(projected, residual, damping, rows, low, high, reach, step, active,
+                   upper_side, leading):
     """The certified step of _polish, made independent of the active set that certified
     it: at a degenerate vertex several sets do (ProxSuite's duals gave two fresh solvers
     two of them, and steps 3e-14 apart). Every bound the step is on (within
@@ -531,41 +526,61 @@ def _on_tight_rows(hessian, gradient, rows, low, high, reach, step, active, uppe
         return step, active, upper_side, CERTIFIED
     index = np.flatnonzero(tight)
     value = np.where(on_upper[index], high[index], low[index])
-    step = _on_active_rows(hessian, gradient, np.ascontiguousarray(rows[index]), value,
-                           -1)[0]
+    step = _on_active_rows(projected, residual, damping, np.ascontiguousarray(rows[index]),
+                           value, -1)[0]
     return step, active, upper_side, CERTIFIED
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _on_active_rows(hessian, gradient, active_rows, value, leading):
-    """argmin 1/2 y^T H y - g^T y subject to active_rows y = value (least squares on
-    dependent rows), by the nullspace method on a pivoted QR of active_rows^T (row
-    `leading` pivoted first, if >= 0): (y, one set of multipliers mu with active_rows^T mu
-    = g - H y, the factorization (Q, R, order, rank) of _pivoted_qr)."""
-    variables = len(gradient)
-    orthogonal, triangular, order, rank = _pivoted_qr(np.ascontiguousarray(active_rows.T),
-                                                      leading)
+def _on_active_rows(projected, residual, damping, active_rows, value, leading):
+    """argmin |P y - r|^2 + damping^2 |y|^2 subject to active_rows y = value (least squares
+    on dependent rows), by the nullspace method on a pivoted QR of active_rows^T (row
+    `leading` pivoted first, if >= 0): y = Q (t, z), t from R11^T t = the kept rows'
+    values, z the damped least squares of (P Q)_2 z = r - (P Q)_1 t (_damped_least_squares;
+    Q applied by its reflectors, never formed). Returns (y, one set of multipliers mu with
+    active_rows^T mu = g - H y, H = P^T P + damping^2 I and g = P^T r, the factorization
+    of _pivoted_qr)."""
+    variables = projected.shape[1]
+    factorization = _pivoted_qr(np.ascontiguousarray(active_rows.T), leading)
+    triangular, order, rank = factorization[2], factorization[3], factorization[4]
     kept = value[order[:rank]]
-    particular = np.zeros(rank)     # R11^T t = kept
-    for i in range(rank):
+    coordinates = np.zeros(variables)   # (t, z): y in the basis of Q's columns
+    for i in range(rank):               # R11^T t = kept
         acc = kept[i]
         for p in range(i):
-            acc -= triangular[p, i] * particular[p]
-        particular[i] = acc / triangular[i, i]
-    step = np.ascontiguousarray(orthogonal[:, :rank]) @ particular
+            acc -= triangular[p, i] * coordinates[p]
+        coordinates[i] = acc / triangular[i, i]
     if rank < variables:
-        free = np.ascontiguousarray(orthogonal[:, rank:])
-        free_t = np.ascontiguousarray(free.T)
-        step += free @ _spd_solve(free_t @ hessian @ free,
-                                  free_t @ (gradient - hessian @ step))
+        rotated = _transposed_q_rows(factorization, projected)    # (P Q)^T
+        wanted = residual.copy()
+        for i in range(rank):
+            for row in range(len(wanted)):
+                wanted[row] -= rotated[i, row] * coordinates[i]
+        coordinates[rank:] = _damped_least_squares(np.ascontiguousarray(rotated[rank:].T),
+                                                   wanted, damping * damping)
+    step = _q_times(factorization, coordinates)
     multiplier = np.zeros(len(value))
-    multiplier[order[:rank]] = _basic_solution(orthogonal, triangular, rank,
-                                               gradient - hessian @ step)
-    return step, multiplier, (orthogonal, triangular, order, rank)
+    multiplier[order[:rank]] = _basic_solution(factorization,
+                                               _descent(projected, residual, damping, step))
+    return step, multiplier, factorization
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _leaving_bound(orthogonal, triangular, order, rank, joining, multiplier, side):
+def _descent(projected, residual, damping, step):
+    """g - H y of the level's QP (H = P^T P + damping^2 I, g = P^T r) at y = step: what the
+    active rows' multipliers must balance."""
+    descent = -damping * damping * step
+    for row in range(projected.shape[0]):
+        missed = residual[row]
+        for c in range(len(step)):
+            missed -= projected[row, c] * step[c]
+        for c in range(len(step)):
+            descent[c] += projected[row, c] * missed
+    return descent
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _leaving_bound(factorization, joining, multiplier, side):
     """Index (into the active rows of a _pivoted_qr factorization, their multipliers and
     sides +-1) of the bound that a joining one replaces when its outward normal `joining`
     depends on the active rows (Goldfarb and Idnani's dual step): with joining =
@@ -574,11 +589,12 @@ def _leaving_bound(orthogonal, triangular, order, rank, joining, multiplier, sid
     joining one's drives to 0); -1 when joining is independent of the active rows (none
     has to leave) or no c_i side_i is positive. Without it, two dependent bounds that
     cannot both hold replace each other in turn until the polish gives up."""
-    outside = np.ascontiguousarray(orthogonal[:, rank:].T) @ joining
+    order, rank = factorization[3], factorization[4]
+    outside = _transposed_q_times(factorization, joining)[rank:]
     if np.sqrt(np.sum(outside * outside)) > RANK_RELATIVE * np.sqrt(np.sum(joining * joining)):
         return -1
     coefficients = np.zeros(len(side))
-    coefficients[order[:rank]] = _basic_solution(orthogonal, triangular, rank, joining)
+    coefficients[order[:rank]] = _basic_solution(factorization, joining)
     share = coefficients * side
     threshold = RANK_RELATIVE * np.max(np.abs(share)) if len(share) else 0.0
     leaving, least = -1, np.inf
@@ -592,13 +608,13 @@ def _leaving_bound(orthogonal, triangular, order, rank, joining, multiplier, sid
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _pivoted_qr(matrix, leading):
-    """Householder QR with column pivoting, matrix[:, order] = Q R: (Q n x n orthogonal, R
-    n x s, order, rank); column `leading` first if >= 0, then the largest remaining; a
-    column whose remaining norm is at most RANK_RELATIVE x the largest column norm ends
-    the rank (R[:rank, :rank] is then upper triangular)."""
+    """Householder QR with column pivoting, matrix[:, order] = Q R, Q = H_0 ... H_{rank-1}
+    kept as its reflections H_j = I - scale_j v_j v_j^T: (reflectors (rank x n, v_j zero
+    before entry j), scales, R (n x s, upper triangular in its first rank rows), order,
+    rank); column `leading` first if >= 0, then the largest remaining; a column whose
+    remaining norm is at most RANK_RELATIVE x the largest column norm ends the rank."""
     n, columns = matrix.shape
     factor = matrix.copy()
-    orthogonal = np.eye(n)
     order = np.arange(columns)
     norms = np.zeros(columns)
     largest = 0.0
@@ -607,7 +623,8 @@ def _pivoted_qr(matrix, leading):
         for i in range(n):
             acc += factor[i, c] * factor[i, c]
         largest = max(largest, acc)
-    reflector = np.zeros(n)
+    reflectors = np.zeros((min(n, columns), n))
+    scales = np.zeros(min(n, columns))
     rank = 0
     for j in range(min(n, columns)):
         for c in range(j, columns):
@@ -626,9 +643,11 @@ def _pivoted_qr(matrix, leading):
             order[j], order[pivot] = order[pivot], order[j]
         length = np.sqrt(norms[pivot])
         alpha = -length if factor[j, j] >= 0.0 else length
+        reflector = reflectors[j]
         reflector[j:] = factor[j:, j]
         reflector[j] -= alpha
         scale = 2.0 / (norms[pivot] - 2.0 * alpha * factor[j, j] + alpha * alpha)
+        scales[j] = scale
         for c in range(j, columns):
             acc = 0.0
             for i in range(j, n):
@@ -636,22 +655,67 @@ def _pivoted_qr(matrix, leading):
             acc *= scale
             for i in range(j, n):
                 factor[i, c] -= acc * reflector[i]
-        for row in range(n):
-            acc = 0.0
-            for i in range(j, n):
-                acc += orthogonal[row, i] * reflector[i]
-            acc *= scale
-            for i in range(j, n):
-                orthogonal[row, i] -= acc * reflector[i]
         rank += 1
-    return orthogonal, factor, order, rank
+    return reflectors[:rank], scales[:rank], factor, order, rank
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _basic_solution(orthogonal, triangular, rank, rhs):
+def _q_times(factorization, vector):
+    """Q vector for a _pivoted_qr factorization: its reflections, the last first."""
+    reflectors, scales = factorization[0], factorization[1]
+    result = vector.copy()
+    for j in range(len(scales) - 1, -1, -1):
+        _reflect(reflectors[j], scales[j], j, result)
+    return result
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _transposed_q_times(factorization, vector):
+    """Q^T vector for a _pivoted_qr factorization: its reflections, the first first."""
+    reflectors, scales = factorization[0], factorization[1]
+    result = vector.copy()
+    for j in range(len(scales)):
+        _reflect(reflectors[j], scales[j], j, result)
+    return result
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _transposed_q_rows(factorization, matrix):
+    """Q^T matrix^T (n x rows) for a _pivoted_qr factorization: each reflection a rank-one
+    update over contiguous rows."""
+    reflectors, scales = factorization[0], factorization[1]
+    result = np.ascontiguousarray(matrix.T)
+    combination = np.empty(result.shape[1])
+    for j in range(len(scales)):
+        reflector = reflectors[j]
+        combination[:] = 0.0
+        for i in range(j, result.shape[0]):
+            for column in range(result.shape[1]):
+                combination[column] += reflector[i] * result[i, column]
+        for i in range(j, result.shape[0]):
+            weight = scales[j] * reflector[i]
+            for column in range(result.shape[1]):
+                result[i, column] -= weight * combination[column]
+    return result
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _reflect(reflector, scale, start, vector):
+    """vector <- (I - scale v v^T) vector in place, v = reflector (zero before `start`)."""
+    acc = 0.0
+    for i in range(start, len(vector)):
+        acc += reflector[i] * vector[i]
+    acc *= scale
+    for i in range(start, len(vector)):
+        vector[i] -= acc * reflector[i]
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _basic_solution(factorization, rhs):
     """x (rank) with R11 x = Q1^T rhs: the least-squares coefficients of rhs on the first
     `rank` pivoted columns of a _pivoted_qr factorization."""
-    x = np.ascontiguousarray(orthogonal[:, :rank].T) @ rhs
+    triangular, rank = factorization[2], factorization[4]
+    x = _transposed_q_times(factorization, rhs)[:rank].copy()
     for i in range(rank - 1, -1, -1):
         acc = x[i]
         for p in range(i + 1, rank):
@@ -677,10 +741,9 @@ def _nonnegative_residual(matrix, rhs, tolerance):
         passive[entering] = True
         for _ in range(3 * columns):
             index = np.flatnonzero(passive)
-            orthogonal, triangular, order, rank = _pivoted_qr(
-                np.ascontiguousarray(matrix[:, index]), -1)
+            factorization = _pivoted_qr(np.ascontiguousarray(matrix[:, index]), -1)
             trial = np.zeros(len(index))
-            trial[order[:rank]] = _basic_solution(orthogonal, triangular, rank, rhs)
+            trial[factorization[3][:factorization[4]]] = _basic_solution(factorization, rhs)
             if np.all(trial > 0.0):
                 x[:] = 0.0
                 x[index] = trial
