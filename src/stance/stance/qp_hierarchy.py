@@ -24,11 +24,13 @@ runs only when a level crosses a bound. It is compiled (numba) but for ProxSuite
 exact active-set fallback.
 
 A level that crosses a bound is first polished from its hot start, the active set it
-ended with last time (kept by DoF: the clamping loop re-solves each step once or twice, and
-the set changes little from one step to the next). The polish solves the problem with the
-active bounds as equalities exactly (nullspace method on a pivoted QR of the active rows)
-and keeps the result when it is a KKT point: no bound violated, multipliers of the right
-sign (by NNLS at a degenerate vertex, where more bounds are active than y has variables).
+ended with last time (kept by DoF, per level and per pattern of fixed DoFs: the clamping
+loop's solutions of one step fix different joints, and each changes little from the one
+that fixed the same joints a step before). The polish solves the problem with the active
+bounds as equalities exactly (nullspace method on a pivoted QR of the active rows, Q kept
+as its reflections, the damped least squares in their nullspace) and keeps the result
+when it is a KKT point: no bound violated, multipliers of the right sign (by NNLS at a
+degenerate vertex, where more bounds are active than y has variables).
 Otherwise it corrects the set (the most violated bound joins, replacing by Goldfarb and
 Idnani's ratio rule the one it makes redundant at a vertex; the worst wrong-sign one
 leaves) a bounded number of times. The KKT point is unique (the objective is strictly
