@@ -172,20 +172,32 @@ def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_valu
 
 @numba.njit(cache=True)
 def levels_within_bounds(level_starts, fixed, lower, upper):
-    """Whether a solution's levels respect per-DoF bounds on dq (nv each): for every DoF not
-    fixed, 0 within [lower, upper] and each level's dq (level_starts: (levels + 1) x nv,
-    the start then each level's result) inside them or not further out than the level
-    before left it. QPHierarchy keeps the unconstrained solution exactly then."""
+    """Whether a solution's levels respect per-DoF bounds on dq (nv each):
+    first_level_out_of_bounds finds none. QPHierarchy keeps the unconstrained solution
+    exactly then."""
+    return first_level_out_of_bounds(level_starts, fixed, lower, upper) == \
+        level_starts.shape[0] - 1
+
+
+@numba.njit(cache=True)
+def first_level_out_of_bounds(level_starts, fixed, lower, upper):
+    """The first level of a solution whose dq leaves per-DoF bounds on dq (nv each), the
+    level count if none does: for every DoF not fixed, each level's dq (level_starts:
+    (levels + 1) x nv, the start then each level's result) must stay inside them or not go
+    further out than the level before left it; 0 when a free DoF's bounds exclude 0. The
+    levels before it are what QPHierarchy's cascade would keep."""
+    first = level_starts.shape[0] - 1
     for dof in range(len(fixed)):
         if fixed[dof]:
             continue
         if lower[dof] > 0.0 or upper[dof] < 0.0:
-            return False
-        for level in range(level_starts.shape[0] - 1):
+            return 0
+        for level in range(first):
             before, after = level_starts[level, dof], level_starts[level + 1, dof]
             if after < min(lower[dof], before) or after > max(upper[dof], before):
-                return False
-    return True
+                first = level
+                break
+    return first
 
 
 @numba.njit(cache=True)

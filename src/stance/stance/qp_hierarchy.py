@@ -60,7 +60,7 @@ from proxsuite import proxqp
 
 from .hierarchy import (REORDERING, DampedHierarchy, HierarchySolution, Level,
                         _damped_least_squares, _nullspace_update, _sparse_rows_product,
-                        _times, levels_within_bounds, stack_levels)
+                        _times, first_level_out_of_bounds, stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
 # ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
@@ -171,31 +171,47 @@ class QPHierarchy:
         free = np.ones(nv, dtype=bool)
         free[np.asarray(fixed_index, dtype=int)] = False
         lower, upper = _checked_bounds(bounds, nv)
-        if not np.any(free & ((lower > 0.0) | (upper < 0.0))):  # else 0 is out: cascade
-            solution = self.unconstrained.solve_stacked(jacobian, target, offsets,
-                                                        fixed_index, fixed_dq,
-                                                        previous=previous)
-            if levels_within_bounds(solution.restart.level_starts, ~free, lower, upper):
-                return solution
+        if np.any(free & ((lower > 0.0) | (upper < 0.0))):  # 0 is out: no level is kept
+            return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free,
+                                 lower, upper)
+        state = getattr(previous, "restart", None)
+        # a restart that fixed more joints leaves the levels above it their old starts
+        whole = state is None or np.array_equal(state.fixed, ~free)
+        solution = self.unconstrained.solve_stacked(jacobian, target, offsets, fixed_index,
+                                                    fixed_dq, previous=previous)
+        first = first_level_out_of_bounds(solution.restart.level_starts, ~free, lower, upper)
+        if first == len(offsets) - 1:
+            return solution
         return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
-                             upper)
+                             upper, solution if whole else None, first if whole else 0)
 
-    def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper):
+    def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper,
+                 unconstrained=None, first=0):
         """The level by level solve of the module docstring (free: bool (nv), the DoFs not
         in fixed_index; lower, upper: bounds (nv each)): compiled, but for the levels whose
-        hot start fails, which ProxSuite solves here."""
+        hot start fails, which ProxSuite solves here. unconstrained: DampedHierarchy's
+        solution of the same problem, whose levels before `first` stay within the bounds
+        (first_level_out_of_bounds): the cascade keeps them and starts at `first` from
+        that solution's state."""
         nv = jacobian.shape[1]
-        dq = np.clip(np.zeros(nv), lower, upper)
-        dq[np.asarray(fixed_index, dtype=int)] = fixed_dq
-        bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
-        basis = np.ascontiguousarray(np.eye(nv)[:, free])  # one compiled layout
         level_count = len(offsets) - 1
+        residuals = np.zeros(level_count)
+        if unconstrained is None:
+            dq = np.clip(np.zeros(nv), lower, upper)
+            dq[np.asarray(fixed_index, dtype=int)] = fixed_dq
+            basis = np.ascontiguousarray(np.eye(nv)[:, free])  # one compiled layout
+        else:
+            state = unconstrained.restart
+            dq = state.level_starts[first].copy()
+            rank = state.level_ranks[first]
+            basis = np.ascontiguousarray(state.level_bases[first, :, :rank])
+            residuals[:first] = unconstrained.step_residuals[:first]
+        bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
         self._active_sides, self._known_sides = self._kept_for(free, level_count)
         if not self.hot_start:
             self._known_sides[:] = False
-        residuals = np.zeros(level_count)
         enforced = np.zeros(nv, dtype=bool)
-        level, given_step, given_dofs = 0, np.zeros(0), np.zeros(0, dtype=np.int64)
+        level, given_step, given_dofs = first, np.zeros(0), np.zeros(0, dtype=np.int64)
         while True:
             level, basis, projected, residual = _cascade_levels(
                 jacobian, target, offsets, level, dq, basis, bounded, lower, upper,
