@@ -102,6 +102,25 @@ def test_bounds_excluding_zero_skip_the_unconstrained_solve(monkeypatch):
     np.testing.assert_allclose(solution.dq, reference, rtol=0, atol=1e-9)
 
 
+def test_a_restart_that_fixes_more_joints_is_cascaded_from_the_first_level():
+    """previous: an unconstrained solution with no DoF fixed; DoF 2 (seen by level 1 only)
+    is then fixed at 0.3, so the unconstrained solve restarts at level 1 and keeps level
+    0's old start (DoF 2 at 0), while level 0 crosses its bound on DoF 0. The cascade must
+    not start from that stale state: the same answer as without `previous`."""
+    jacobian, target = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]]), np.array([1.0, 1.0])
+    offsets = np.array([0, 1, 2])
+    bounds = (np.full(3, -1.0), np.array([0.5, 1.0, 1.0]))
+    previous = DampedHierarchy(damping=DAMPING).solve_stacked(jacobian, target, offsets)
+    restarted = QPHierarchy(damping=DAMPING).solve_stacked(
+        jacobian, target, offsets, [2], [0.3], bounds=bounds, previous=previous)
+    fresh = QPHierarchy(damping=DAMPING).solve_stacked(jacobian, target, offsets, [2], [0.3],
+                                                       bounds=bounds)
+    assert restarted.dq[2] == 0.3 and restarted.dq[0] == pytest.approx(0.5, abs=1e-12)
+    np.testing.assert_allclose(restarted.dq, fresh.dq, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(restarted.step_residuals, fresh.step_residuals, rtol=0,
+                               atol=1e-12)
+
+
 def test_exact_solve_says_when_it_ran_out_of_iterations(monkeypatch):
     """The exact active-set fallback: converged with the bounded least squares optimum;
     without iterations left, a feasible step flagged as not converged."""
