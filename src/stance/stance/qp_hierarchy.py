@@ -20,8 +20,9 @@ the result is then DampedHierarchy's (to rounding). So DampedHierarchy's compile
 comes first, and when every level's dq respects the bounds (most steps: progressive
 clamping keeps joints off their limits) its solution is the answer, restart state
 included (a re-solve of the clamping loop then restarts where it can); the cascade below
-runs only when a level crosses a bound. It is compiled (numba) but for ProxSuite and the
-exact active-set fallback.
+runs only when a level crosses a bound, from that level on (the levels above are the
+unconstrained solve's). It is compiled (numba) but for ProxSuite and the exact active-set
+fallback.
 
 A level that crosses a bound is first polished from its hot start, the active set it
 ended with last time (kept by DoF, per level and per pattern of fixed DoFs: the clamping
