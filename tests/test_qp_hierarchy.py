@@ -121,6 +121,37 @@ def test_a_restart_that_fixes_more_joints_is_cascaded_from_the_first_level():
                                atol=1e-12)
 
 
+def test_a_restart_from_a_solution_within_the_bounds_cascades_from_its_crossing_level(
+        monkeypatch):
+    """previous within the bounds; DoF 2 (seen by level 1 only) then fixed at 0.8 pushes
+    level 1's DoF 1 through its bound: the cascade starts at level 1 from the restarted
+    state (level 0 kept) and gives the answer of a solve without `previous`."""
+    jacobian, target = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]]), np.array([0.3, 0.2])
+    offsets = np.array([0, 1, 2])
+    bounds = (np.array([-1.0, -0.4, -1.0]), np.full(3, 1.0))
+    solver = QPHierarchy(damping=DAMPING)
+    previous = solver.solve_stacked(jacobian, target, offsets, bounds=bounds)
+    assert previous.restart is not None         # within the bounds: the unconstrained one
+    starts = []
+    cascade = solver._cascade
+
+    def recorded(*args):
+        starts.append(args[-1])                 # the level the cascade starts at
+        return cascade(*args)
+
+    monkeypatch.setattr(solver, "_cascade", recorded)
+    restarted = solver.solve_stacked(jacobian, target, offsets, [2], [0.8], bounds=bounds,
+                                     previous=previous)
+    assert starts == [1]
+    fresh = QPHierarchy(damping=DAMPING).solve_stacked(jacobian, target, offsets, [2], [0.8],
+                                                       bounds=bounds)
+    assert restarted.dq[2] == 0.8 and restarted.dq[1] == pytest.approx(-0.4, abs=1e-12)
+    assert restarted.binding == ["dof1 lower"]
+    np.testing.assert_allclose(restarted.dq, fresh.dq, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(restarted.step_residuals, fresh.step_residuals, rtol=0,
+                               atol=1e-12)
+
+
 def test_exact_solve_says_when_it_ran_out_of_iterations(monkeypatch):
     """The exact active-set fallback: converged with the bounded least squares optimum;
     without iterations left, a feasible step flagged as not converged."""

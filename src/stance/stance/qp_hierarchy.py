@@ -175,16 +175,21 @@ class QPHierarchy:
         if np.any(free & ((lower > 0.0) | (upper < 0.0))):  # 0 is out: no level is kept
             return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free,
                                  lower, upper)
+        level_count = len(offsets) - 1
         state = getattr(previous, "restart", None)
-        # a restart that fixed more joints leaves the levels above it their old starts
-        whole = state is None or np.array_equal(state.fixed, ~free)
+        # a restart that fixes more joints keeps the previous solution's levels above the
+        # restart level, starts included (without the new joints' values): usable when
+        # none of them crosses a bound, then the first crossing level is a re-solved one
+        usable = state is None or np.array_equal(state.fixed, ~free) or \
+            first_level_out_of_bounds(state.level_starts, state.fixed, lower,
+                                      upper) == level_count
         solution = self.unconstrained.solve_stacked(jacobian, target, offsets, fixed_index,
                                                     fixed_dq, previous=previous)
         first = first_level_out_of_bounds(solution.restart.level_starts, ~free, lower, upper)
-        if first == len(offsets) - 1:
+        if first == level_count:
             return solution
         return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
-                             upper, solution if whole else None, first if whole else 0)
+                             upper, solution if usable else None, first if usable else 0)
 
     def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper,
                  unconstrained=None, first=0):
