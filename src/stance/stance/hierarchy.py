@@ -66,6 +66,8 @@ class _RestartState:
     level_bases: np.ndarray       # levels x nv x nv, level i's basis in [i, :, :ranks[i]]
     level_ranks: np.ndarray       # levels
     level_starts: np.ndarray      # (levels + 1) x nv: dq before each level, then the final dq
+    #                               (after a restart, the levels before the restart level
+    #                               keep the earlier solution's starts and bases)
 
 
 class DampedHierarchy:

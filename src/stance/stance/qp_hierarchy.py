@@ -175,17 +175,17 @@ class QPHierarchy:
         if np.any(free & ((lower > 0.0) | (upper < 0.0))):  # 0 is out: no level is kept
             return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free,
                                  lower, upper)
-        level_count = len(offsets) - 1
+        level_count, fixed = len(offsets) - 1, ~free
         state = getattr(previous, "restart", None)
         # a restart that fixes more joints keeps the previous solution's levels above the
         # restart level, starts included (without the new joints' values): usable when
         # none of them crosses a bound, then the first crossing level is a re-solved one
-        usable = state is None or np.array_equal(state.fixed, ~free) or \
+        usable = state is None or np.array_equal(state.fixed, fixed) or \
             first_level_out_of_bounds(state.level_starts, state.fixed, lower,
                                       upper) == level_count
         solution = self.unconstrained.solve_stacked(jacobian, target, offsets, fixed_index,
                                                     fixed_dq, previous=previous)
-        first = first_level_out_of_bounds(solution.restart.level_starts, ~free, lower, upper)
+        first = first_level_out_of_bounds(solution.restart.level_starts, fixed, lower, upper)
         if first == level_count:
             return solution
         return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
@@ -497,6 +497,7 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         leading = np.searchsorted(index, joined) if joined >= 0 and active[joined] else -1
         step, multiplier, factorization = _on_active_rows(projected, residual, damping,
                                                           active_rows, value, leading)
+        rank = factorization[4]
         reach = rows @ step
         missed = np.abs(reach[index] - value) > FEASIBILITY_SLACK
         if np.any(missed):          # dependent active rows that disagree: not a vertex
@@ -520,8 +521,8 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
             continue
         signed = multiplier * side
         certified = np.all(signed >= -slack)
-        if not certified and factorization[4] < len(index):  # dependent rows (rank short):
-            outward = np.ascontiguousarray(active_rows.T * side)  # other multipliers may fit
+        if not certified and rank < len(index):  # dependent rows: other multipliers may
+            outward = np.ascontiguousarray(active_rows.T * side)  # fit the signs
             certified = _nonnegative_residual(outward, _descent(projected, residual,
                                                                 damping, step),
                                               slack) <= slack
