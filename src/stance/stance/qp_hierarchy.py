@@ -54,14 +54,16 @@ active set was found (where that re-solve finds no KKT point, the step found is 
 from __future__ import annotations
 
 import weakref
+from typing import NamedTuple
 
 import numba
 import numpy as np
 from proxsuite import proxqp
 
 from .hierarchy import (REORDERING, DampedHierarchy, HierarchySolution, Level,
-                        _damped_least_squares, _nullspace_update, _sparse_rows_product,
-                        _times, first_level_out_of_bounds, stack_levels)
+                        _damped_least_squares, _free_axes, _nullspace_update,
+                        _sparse_rows_product, _times, first_level_out_of_bounds,
+                        stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
 # ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
@@ -113,6 +115,29 @@ def robot_velocity_steps(robot, dt: float | None) -> np.ndarray:
     return steps
 
 
+class KeptActiveSets(NamedTuple):
+    """The active sets cascades ended with, per level, for up to MAX_KEPT_SETS patterns of
+    fixed DoFs (slots): the clamping loop's solutions of one step fix different joints, and
+    each is most like the one that fixed the same joints a step before."""
+
+    free: np.ndarray     # slots x nv, bool: the free DoFs of the slot's solves
+    sides: np.ndarray    # slots x levels x nv, int8: +1 upper, -1 lower, 0 inactive
+    known: np.ndarray    # slots x levels, bool: whether the level has one
+    used: np.ndarray     # slots, int64: when the slot was last used (0: empty), later larger
+
+    @classmethod
+    def empty(cls, level_count: int, nv: int) -> KeptActiveSets:
+        return cls(np.zeros((MAX_KEPT_SETS, nv), dtype=np.bool_),
+                   np.zeros((MAX_KEPT_SETS, level_count, nv), dtype=np.int8),
+                   np.zeros((MAX_KEPT_SETS, level_count), dtype=np.bool_),
+                   np.zeros(MAX_KEPT_SETS, dtype=np.int64))
+
+
+# cascade_compiled's unconstrained solution state when there is none
+_NO_LEVEL_BASES, _NO_LEVEL_STARTS = np.zeros((0, 0, 0)), np.zeros((0, 0))
+_NO_LEVEL_RANKS, _NO_RESIDUALS = np.zeros(0, dtype=np.int64), np.zeros(0)
+
+
 class QPHierarchy:
     """Prioritized damped least squares with inequality bounds on dq (see module docstring).
 
@@ -147,9 +172,9 @@ class QPHierarchy:
         #                           is feasible but not shown optimal
         self.qp_iterations = 0    # ProxSuite's inner iterations, warm and cold solves
         self._counters = np.zeros(1, dtype=np.int64)  # [hot starts], filled when compiled
-        self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: kept active sets
-        self._known_sides = np.zeros(0, dtype=np.bool_)
-        self._kept_sets = {}      # free DoFs (bytes) -> (sides, known), least recent first
+        self._kept = KeptActiveSets.empty(0, 0)
+        self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
+        self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of self._kept
         self._bound_labels = []   # "<dof> lower|upper|velocity", 3 per DoF (_binding_codes)
 
     @classmethod
@@ -194,60 +219,47 @@ class QPHierarchy:
     def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper,
                  unconstrained=None, first=0):
         """The level by level solve of the module docstring (free: bool (nv), the DoFs not
-        in fixed_index; lower, upper: bounds (nv each)): compiled, but for the levels whose
-        hot start fails, which ProxSuite solves here. unconstrained: DampedHierarchy's
-        solution of the same problem, whose levels before `first` stay within the bounds
-        (first_level_out_of_bounds): the cascade keeps them and starts at `first` from
-        that solution's state."""
-        nv = jacobian.shape[1]
-        level_count = len(offsets) - 1
-        residuals = np.zeros(level_count)
-        if unconstrained is None:
-            dq = np.clip(np.zeros(nv), lower, upper)
-            dq[np.asarray(fixed_index, dtype=int)] = fixed_dq
-            basis = np.ascontiguousarray(np.eye(nv)[:, free])  # one compiled layout
-        else:
-            state = unconstrained.restart
-            dq = state.level_starts[first].copy()
-            rank = state.level_ranks[first]
-            basis = np.ascontiguousarray(state.level_bases[first, :, :rank])
-            residuals[:first] = unconstrained.step_residuals[:first]
-        bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
-        self._active_sides, self._known_sides = self._kept_for(free, level_count)
-        if not self.hot_start:
-            self._known_sides[:] = False
-        enforced = np.zeros(nv, dtype=bool)
-        level, given_step, given_dofs = first, np.zeros(0), np.zeros(0, dtype=np.int64)
-        while True:
+        in fixed_index; lower, upper: bounds (nv each)): compiled (cascade_compiled), but
+        for the levels whose hot start fails, which ProxSuite solves here. unconstrained:
+        DampedHierarchy's solution of the same problem, whose levels before `first` stay
+        within the bounds (first_level_out_of_bounds): the cascade keeps them and starts
+        at `first` from that solution's state."""
+        nv, level_count = jacobian.shape[1], len(offsets) - 1
+        values = np.zeros(nv)
+        values[np.asarray(fixed_index, dtype=int)] = fixed_dq
+        kept = self.kept_active_sets(level_count, nv)
+        enforced, residuals = np.zeros(nv, dtype=bool), np.zeros(level_count)
+        state = None if unconstrained is None else unconstrained.restart
+        level, dq, basis, projected, residual, bounded, slot = cascade_compiled(
+            jacobian, target, offsets, ~free, values, lower, upper,
+            -1 if state is None else first,
+            *((_NO_LEVEL_BASES, _NO_LEVEL_RANKS, _NO_LEVEL_STARTS, _NO_RESIDUALS)
+              if state is None else (state.level_bases, state.level_ranks,
+                                     state.level_starts, unconstrained.step_residuals)),
+            *kept, self._counters, self.hot_start, enforced, residuals, self.damping,
+            self.rank_tolerance)
+        self._active_sides, self._known_sides = kept.sides[slot], kept.known[slot]
+        while level < level_count:
+            given_step, given_dofs = self._qp_level_step(level, projected, residual, basis,
+                                                         dq, bounded, lower, upper)
             level, basis, projected, residual = _cascade_levels(
                 jacobian, target, offsets, level, dq, basis, bounded, lower, upper,
                 self._active_sides, self._known_sides, enforced, residuals, self._counters,
                 self.damping, self.rank_tolerance, given_step, given_dofs)
-            if level == level_count:
-                return HierarchySolution(dq=dq, step_residuals=residuals,
-                                         binding=self._binding_names(dq, enforced, lower,
-                                                                     upper))
-            given_step, given_dofs = self._qp_level_step(level, projected, residual, basis,
-                                                         dq, bounded, lower, upper)
+        return self.cascade_solution(dq, residuals, enforced, lower, upper)
 
-    def _kept_for(self, free, level_count):
-        """The kept active sets (levels x nv sides, levels known) for solves with these free
-        DoFs: the clamping loop's solutions of one step fix different joints, and each
-        is most like the one that fixed the same joints a step before. A new pattern
-        starts from a copy of the sets used last."""
-        nv = len(free)
-        key = free.tobytes()
-        kept = self._kept_sets.pop(key, None)
-        if kept is None or kept[0].shape != (level_count, nv):
-            last = next(reversed(self._kept_sets.values()), None)
-            kept = (last[0].copy(), last[1].copy()) \
-                if last is not None and last[0].shape == (level_count, nv) else \
-                (np.zeros((level_count, nv), dtype=np.int8),
-                 np.zeros(level_count, dtype=np.bool_))
-        self._kept_sets[key] = kept
-        if len(self._kept_sets) > MAX_KEPT_SETS:
-            del self._kept_sets[next(iter(self._kept_sets))]
-        return kept
+    def cascade_solution(self, dq, residuals, enforced, lower, upper) -> HierarchySolution:
+        """The HierarchySolution of a cascade that ended with dq and these level residuals,
+        naming the bounds of the `enforced` DoFs (bool, nv) that dq is on."""
+        return HierarchySolution(dq=dq, step_residuals=residuals,
+                                 binding=self._binding_names(dq, enforced, lower, upper))
+
+    def kept_active_sets(self, level_count: int, nv: int) -> KeptActiveSets:
+        """The kept active sets of problems of this shape, which cascade_compiled reads
+        and updates (emptied when the shape changes: a new stack)."""
+        if self._kept.sides.shape[1:] != (level_count, nv):
+            self._kept = KeptActiveSets.empty(level_count, nv)
+        return self._kept
 
     def warm_up(self) -> None:
         """Compile (or load from numba's disk cache) the cascade's kernels, by a throwaway
@@ -358,6 +370,63 @@ def _ordered(lower, upper):
         if not lower[dof] <= upper[dof]:
             return False
     return True
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def cascade_compiled(jacobian, target, offsets, fixed, values, lower, upper, first,
+                     level_bases, level_ranks, level_starts, unconstrained_residuals,
+                     kept_free, kept_sides, kept_known, kept_used, counters, hot_start,
+                     enforced, residuals, damping, rank_tolerance):
+    """QPHierarchy._cascade in one compiled call, up to the first level whose hot start
+    fails (no kept active set, or no KKT point from it), with the fixed DoFs (bool, nv)
+    at `values` (nv, 0 where free): from level 0 when first < 0, else from level `first`
+    of an unconstrained solution (solve_compiled's level_bases, level_ranks and
+    level_starts, its residuals), whose levels before it are kept. The kept active sets
+    (KeptActiveSets' arrays), the counters, `enforced` (bool, nv: DoFs whose bounds a
+    level enforced) and `residuals` (levels) are updated in place.
+    Returns (the level reached, the level count when all are solved; dq, and the basis,
+    P and r that level starts from; the bounded free DoFs; the kept set's slot)."""
+    if first < 0:
+        first = 0
+        dq = np.minimum(np.maximum(0.0, lower), upper)
+        for dof in range(len(fixed)):
+            if fixed[dof]:
+                dq[dof] = values[dof]
+        basis = _free_axes(fixed)
+    else:
+        dq = level_starts[first].copy()
+        basis = np.ascontiguousarray(level_bases[first, :, :level_ranks[first]])
+        residuals[:first] = unconstrained_residuals[:first]
+    free = ~fixed
+    bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
+    slot = _kept_slot(free, kept_free, kept_sides, kept_known, kept_used)
+    if not hot_start:
+        kept_known[slot] = False
+    level, basis, projected, residual = _cascade_levels(
+        jacobian, target, offsets, first, dq, basis, bounded, lower, upper, kept_sides[slot],
+        kept_known[slot], enforced, residuals, counters, damping, rank_tolerance, np.zeros(0),
+        np.zeros(0, dtype=np.int64))
+    return level, dq, basis, projected, residual, bounded, slot
+
+
+@numba.njit(cache=True)
+def _kept_slot(free, kept_free, kept_sides, kept_known, kept_used):
+    """The slot of KeptActiveSets (its arrays, updated in place) for solves with these free
+    DoFs, marked as the one used last. A new pattern takes an empty slot, else the least
+    recently used one, and starts from a copy of the sets used last."""
+    last = np.argmax(kept_used)
+    for slot in range(len(kept_used)):
+        if kept_used[slot] > 0 and np.array_equal(kept_free[slot], free):
+            if slot != last:
+                kept_used[slot] = kept_used[last] + 1
+            return slot
+    slot = np.argmin(kept_used)
+    if kept_used[last] > 0:
+        kept_sides[slot] = kept_sides[last]
+        kept_known[slot] = kept_known[last]
+    kept_free[slot] = free
+    kept_used[slot] = kept_used[last] + 1
+    return slot
 
 
 def _new_qp(shape):
