@@ -387,25 +387,29 @@ def test_hot_start_takes_the_same_steps_with_few_proxsuite_solves(talos):
     assert hot.solver.hierarchy.qp_solves < 0.1 * crossed
 
 
-def test_compiled_clamping_loop_hands_over_where_a_bound_binds(talos):
-    """On the issue's stack the compiled clamping loop keeps most steps (no level crosses a
-    bound) and hands the others over to the general loop at the solution that crosses:
-    the same bits as the general loop throughout, both ways taken."""
+def test_compiled_clamping_loop_runs_the_cascades_and_hands_over_for_proxsuite(talos):
+    """On the issue's stack the compiled clamping loop runs every step, the cascades of
+    the steps where a level crosses a bound included, and hands a step over to the general
+    loop only where a level's hot start fails (ProxSuite's business): the same bits as the
+    general loop throughout, both ways taken."""
     start = bench_start(talos)
     compiled, general = (four_level_qp_contender(talos, start).solver for _ in range(2))
     assert compiled._one_call_loop
     general._one_call_loop = False
-    handed_over = []
+    hierarchy, handed_over = compiled.hierarchy, []
     general_loop = compiled._clamping
     compiled._clamping = lambda *args: handed_over.append(1) or general_loop(*args)
-    q, steps = start, 200
-    for _ in range(steps):
+    q, cascaded = start, 0
+    for _ in range(200):
+        before = (len(handed_over), hierarchy.qp_solves, hierarchy.hot_starts)
         expected, result = general.step(q), compiled.step(q)
         assert result.dq.tobytes() == expected.dq.tobytes()
         assert result.clamping_iterations == expected.clamping_iterations
         assert result.binding_constraints == expected.binding_constraints
+        assert (len(handed_over) > before[0]) == (hierarchy.qp_solves > before[1])
+        cascaded += len(handed_over) == before[0] and hierarchy.hot_starts > before[2]
         q = expected.q
-    assert 10 < len(handed_over) < steps - 10
+    assert cascaded > 50 and len(handed_over) >= 1
 
 
 def test_polish_lets_a_joining_bound_replace_the_one_it_conflicts_with():

@@ -27,9 +27,10 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from .hierarchy import (DampedHierarchy, HierarchySolution, levels_within_bounds,
+from .hierarchy import (DampedHierarchy, HierarchySolution, first_level_out_of_bounds,
                         restartable_solution, solve_compiled)
 from .limits import RevoluteLimits, fix_joints, make_strategy
+from .qp_hierarchy import KeptActiveSets, QPHierarchy, cascade_compiled
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
 from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
@@ -242,24 +243,33 @@ class PIKSolver:
     def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h,
                            bounds=None):
         """_clamping in one compiled call, when the 1-DoF joints are the only limit models
-        and the hierarchy is DampedHierarchy, or QPHierarchy (bounds: its (lower, upper))
-        as long as its unconstrained solves are what it keeps: the same kernels in the
-        same order, so the same bits, without the Python around each solution and limit
-        pass. Returns (HierarchySolution, solutions, finished): finished, the final one;
-        else the first solution whose levels left the bounds, not counted and restartable,
+        and the hierarchy is DampedHierarchy, or QPHierarchy (bounds: its (lower, upper)),
+        whose cascades it runs too as long as their hot starts hold: the same kernels in
+        the same order, so the same bits, without the Python around each solution and
+        limit pass. Returns (HierarchySolution, solutions, finished): finished, the final
+        one; else the solution whose levels left the bounds (QPHierarchy with hot starts
+        off), or whose cascade reached a level for ProxSuite, not counted and restartable,
         fixed, fixed_dq and h as it was solved with, for _clamping to go on from (its solve
         restarts at no level: the same bits, the same decision). NaN bounds go to
         _clamping (which refuses them) at once."""
-        unconstrained, limits = self._unconstrained, self.limits
+        unconstrained, limits, hierarchy = self._unconstrained, self.limits, self.hierarchy
         lower, upper = (np.zeros(0), np.zeros(0)) if bounds is None else bounds
         if np.isnan(lower).any() or np.isnan(upper).any():
             return None, 0, False
-        (dq, level_steps, residuals, iterations, within, solved_fixed, solved_values,
-         level_bases, level_ranks, level_starts) = _clamping_loop(
+        cascades = isinstance(hierarchy, QPHierarchy) and hierarchy.hot_start
+        cascade_state = hierarchy.cascade_state(len(offsets) - 1, jacobian.shape[1]) \
+            if cascades else _NO_CASCADE_STATE
+        (dq, level_steps, residuals, iterations, finished, cascaded, solved_fixed,
+         solved_values, level_bases, level_ranks, level_starts) = _clamping_loop(
             jacobian, target, offsets, q, limits.indices, limits.table,
             self.strategy.progressive, fixed, fixed_dq, h, unconstrained.damping,
-            unconstrained.rank_tolerance, lower, upper)
-        if within:
+            unconstrained.rank_tolerance, lower, upper, cascades,
+            cascade_state)
+        if finished and cascaded:
+            enforced = cascade_state[-2]    # scratch arrays: the next step reuses them
+            return hierarchy.cascade_solution(dq, residuals.copy(), enforced, lower,
+                                              upper), iterations, True
+        if finished:
             return HierarchySolution(dq=dq, step_residuals=residuals,
                                      level_steps=level_steps), iterations, True
         return restartable_solution(jacobian, target, solved_fixed, solved_values, dq,
@@ -390,35 +400,75 @@ class PIKSolver:
 
 @numba.njit(cache=True)
 def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, progressive,
-                   fixed, fixed_dq, h, damping, rank_tolerance, lower, upper):
+                   fixed, fixed_dq, h, damping, rank_tolerance, lower, upper, cascades,
+                   cascade_state):
     """PIKSolver._clamping for DampedHierarchy and RevoluteLimits (the indices and table
     of limits.fix_joints) in one call: each solution restarts from the previous one's
     levels (hierarchy.solve_compiled); fixed, fixed_dq and h (nv) are filled in place.
-    lower, upper: QPHierarchy's bounds on dq (nv each; empty: none), the loop stopping
-    before the limit pass of a solution whose levels leave them (levels_within_bounds).
-    Returns (dq, level_steps, residuals, solutions kept, whether all stayed within, then
-    the last solution's fixed joints, their variations, level bases, ranks and starts:
-    hierarchy.restartable_solution's)."""
+    lower, upper: QPHierarchy's bounds on dq (nv each; empty: none). A solution whose
+    levels leave them (first_level_out_of_bounds), or that starts outside them, is
+    QPHierarchy's cascade (qp_hierarchy.cascade_compiled) when `cascades`, with
+    cascade_state = (KeptActiveSets' four arrays, the hierarchy's counters, enforced
+    (nv), cascade residuals (levels)), the next solution then a fresh one as after
+    QPHierarchy.solve_stacked's cascade; the loop stops before the limit pass of a
+    solution that leaves the bounds when not `cascades`, or when its cascade reaches a
+    level whose hot start fails (ProxSuite's business).
+    Returns (dq, level_steps, residuals, solutions kept, whether the last was kept and
+    whether it was a cascade's, then the last solution's fixed joints, their variations,
+    level bases, ranks and starts: hierarchy.restartable_solution's)."""
     nv, levels = jacobian.shape[1], len(offsets) - 1
+    kept_free, kept_sides, kept_known, kept_used, counters, enforced, cascade_residuals = \
+        cascade_state
     level_bases = np.empty((levels, nv, nv))
     level_ranks = np.zeros(levels, dtype=np.int64)
     level_starts = np.empty((levels + 1, nv))
     level_steps, residuals = np.zeros((levels, nv)), np.zeros(levels)
-    solved_fixed, solved_values = np.zeros(0, dtype=np.bool_), np.zeros(0)  # none yet
+    no_fixed, no_values = np.zeros(0, dtype=np.bool_), np.zeros(0)
+    solved_fixed, solved_values = no_fixed, no_values   # none yet: a fresh solve
     solutions = 0
     while True:
         now_fixed, values = fixed.copy(), fixed_dq.copy()   # fixed_dq is 0 where free
-        dq = solve_compiled(jacobian, target, offsets, now_fixed, values, solved_fixed,
-                            solved_values, level_bases, level_ranks, level_starts,
-                            level_steps, residuals, damping, rank_tolerance)
-        within = not len(lower) or levels_within_bounds(level_starts, now_fixed, lower, upper)
-        if within:
-            solutions += 1
-        if not within or fix_joints(q, dq, limit_indices, limit_table, progressive, fixed,
-                                    fixed_dq, h) == 0:
-            return (dq, level_steps, residuals, solutions, within, now_fixed, values,
-                    level_bases, level_ranks, level_starts)
-        solved_fixed, solved_values = now_fixed, values
+        dq = values
+        if cascades and _excludes_zero(now_fixed, lower, upper):
+            first = -1              # QPHierarchy cascades at once, no unconstrained solve
+        else:
+            dq = solve_compiled(jacobian, target, offsets, now_fixed, values, solved_fixed,
+                                solved_values, level_bases, level_ranks, level_starts,
+                                level_steps, residuals, damping, rank_tolerance)
+            first = first_level_out_of_bounds(level_starts, now_fixed, lower, upper) \
+                if len(lower) else levels
+        cascaded = first < levels
+        if cascaded:
+            if not cascades:
+                return (dq, level_steps, residuals, solutions, False, False, now_fixed,
+                        values, level_bases, level_ranks, level_starts)
+            enforced[:] = False
+            cascade_residuals[:] = 0.0
+            reached, dq = cascade_compiled(
+                jacobian, target, offsets, now_fixed, values, lower, upper, first,
+                level_bases, level_ranks, level_starts, residuals, kept_free, kept_sides,
+                kept_known, kept_used, counters, True, enforced, cascade_residuals, damping,
+                rank_tolerance)[:2]
+            if reached < levels:
+                return (dq, level_steps, residuals, solutions, False, True, now_fixed,
+                        values, level_bases, level_ranks, level_starts)
+        solutions += 1
+        if fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
+                      h) == 0:
+            return (dq, level_steps, cascade_residuals if cascaded else residuals, solutions,
+                    True, cascaded, now_fixed, values, level_bases, level_ranks,
+                    level_starts)
+        solved_fixed, solved_values = (no_fixed, no_values) if cascaded else \
+            (now_fixed, values)
+
+
+@numba.njit(cache=True)
+def _excludes_zero(fixed, lower, upper):
+    """Whether a free DoF's bounds on dq (nv each) exclude 0."""
+    for dof in range(len(fixed)):
+        if not fixed[dof] and (lower[dof] > 0.0 or upper[dof] < 0.0):
+            return True
+    return False
 
 
 @numba.njit(cache=True)
@@ -499,6 +549,12 @@ def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
 HIERARCHIES = ("svd", "qp")
 
 
+# _clamping_loop's cascade_state (QPHierarchy.cascade_state, enforced, cascade residuals)
+# for a hierarchy without cascades
+_NO_CASCADE_STATE = (*KeptActiveSets.empty(0, 0), np.zeros(1, dtype=np.int64),
+                     np.zeros(0, dtype=np.bool_), np.zeros(0))
+
+
 def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):
     """A hierarchy object from its name (see PIKSolver; None = svd); objects pass through."""
     if hierarchy is not None and not isinstance(hierarchy, str):
@@ -506,7 +562,6 @@ def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):
     if hierarchy in (None, "svd"):
         return DampedHierarchy(damping=damping)
     if hierarchy == "qp":
-        from .qp_hierarchy import QPHierarchy
         return QPHierarchy.for_robot(robot, dt=dt, damping=damping)
     raise ValueError(f"unknown hierarchy {hierarchy!r} (expected one of {', '.join(HIERARCHIES)})")
 

@@ -173,6 +173,8 @@ class QPHierarchy:
         self.qp_iterations = 0    # ProxSuite's inner iterations, warm and cold solves
         self._counters = np.zeros(1, dtype=np.int64)  # [hot starts], filled when compiled
         self._kept = KeptActiveSets.empty(0, 0)
+        self._cascade_state = (*self._kept, self._counters, np.zeros(0, dtype=np.bool_),
+                               np.zeros(0))
         self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
         self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of self._kept
         self._bound_labels = []   # "<dof> lower|upper|velocity", 3 per DoF (_binding_codes)
@@ -227,7 +229,7 @@ class QPHierarchy:
         nv, level_count = jacobian.shape[1], len(offsets) - 1
         values = np.zeros(nv)
         values[np.asarray(fixed_index, dtype=int)] = fixed_dq
-        kept = self.kept_active_sets(level_count, nv)
+        cascade_state = self.cascade_state(level_count, nv)
         enforced, residuals = np.zeros(nv, dtype=bool), np.zeros(level_count)
         state = None if unconstrained is None else unconstrained.restart
         level, dq, basis, projected, residual, bounded, slot = cascade_compiled(
@@ -236,9 +238,9 @@ class QPHierarchy:
             *((_NO_LEVEL_BASES, _NO_LEVEL_RANKS, _NO_LEVEL_STARTS, _NO_RESIDUALS)
               if state is None else (state.level_bases, state.level_ranks,
                                      state.level_starts, unconstrained.step_residuals)),
-            *kept, self._counters, self.hot_start, enforced, residuals, self.damping,
+            *cascade_state[:5], self.hot_start, enforced, residuals, self.damping,
             self.rank_tolerance)
-        self._active_sides, self._known_sides = kept.sides[slot], kept.known[slot]
+        self._active_sides, self._known_sides = self._kept.sides[slot], self._kept.known[slot]
         while level < level_count:
             given_step, given_dofs = self._qp_level_step(level, projected, residual, basis,
                                                          dq, bounded, lower, upper)
@@ -254,12 +256,16 @@ class QPHierarchy:
         return HierarchySolution(dq=dq, step_residuals=residuals,
                                  binding=self._binding_names(dq, enforced, lower, upper))
 
-    def kept_active_sets(self, level_count: int, nv: int) -> KeptActiveSets:
-        """The kept active sets of problems of this shape, which cascade_compiled reads
-        and updates (emptied when the shape changes: a new stack)."""
+    def cascade_state(self, level_count: int, nv: int) -> tuple:
+        """What cascade_compiled reads and updates in place for problems of this shape:
+        the KeptActiveSets' four arrays (emptied when the shape changes: a new stack), the
+        counters, then scratch arrays for a compiled caller's cascades: enforced DoFs
+        (bool, nv) and level residuals (levels)."""
         if self._kept.sides.shape[1:] != (level_count, nv):
             self._kept = KeptActiveSets.empty(level_count, nv)
-        return self._kept
+            self._cascade_state = (*self._kept, self._counters, np.zeros(nv, dtype=np.bool_),
+                                   np.zeros(level_count))
+        return self._cascade_state
 
     def warm_up(self) -> None:
         """Compile (or load from numba's disk cache) the cascade's kernels, by a throwaway
