@@ -293,10 +293,9 @@ class QPHierarchy:
         hessian[np.diag_indices_from(hessian)] += self.damping * self.damping
         dual = self._qp_solve(level, hessian, -(projected.T @ residual), rows, low,
                               high).results.z
-        upper_side = (dual > slack) & np.isfinite(high)
         step, active, upper_side, status = _polish(
             projected, residual, self.damping, rows, low, high,
-            upper_side | ((dual < -slack) & np.isfinite(low)), upper_side, slack)
+            *_signed_start(dual, slack, low, high), slack)
         if status != CERTIFIED:  # ProxSuite's answer is not certified: solve exactly instead
             self.unpolished += 1
             step, active, upper_side, converged = _active_set_solve(
@@ -501,11 +500,8 @@ def _level_step(projected, residual, basis, dq, bounded, lower, upper, active_si
         return step, FREE
     if not known:
         return step, NO_KKT_POINT
-    side = active_side[dofs]
-    upper_side = (side > 0) & np.isfinite(high)
     step, active, upper_side, status = _polish(projected, residual, damping, rows, low, high,
-                                               upper_side | ((side < 0) & np.isfinite(low)),
-                                               upper_side,
+                                               *_signed_start(active_side[dofs], 0, low, high),
                                                _multiplier_slack(projected, residual))
     if status == CERTIFIED:
         _remember(active_side, dofs, active, upper_side)
@@ -539,6 +535,15 @@ def _multiplier_slack(projected, residual):
     """Tolerated wrong-sign multiplier: MULTIPLIER_SLACK x (1 + |P^T r|_inf)."""
     gradient = np.ascontiguousarray(projected.T) @ residual
     return MULTIPLIER_SLACK * (1.0 + (np.max(np.abs(gradient)) if len(gradient) else 0.0))
+
+
+@numba.njit(cache=True)
+def _signed_start(signs, threshold, low, high):
+    """(active, upper side) row masks a polish starts from: the rows whose sign estimate
+    (ProxSuite's multiplier, or a kept side +-1) is above threshold with a finite upper
+    bound, or below -threshold with a finite lower one."""
+    upper_side = (signs > threshold) & np.isfinite(high)
+    return upper_side | ((signs < -threshold) & np.isfinite(low)), upper_side
 
 
 @numba.njit(cache=True)
