@@ -173,21 +173,13 @@ def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_valu
 
 
 @numba.njit(cache=True)
-def levels_within_bounds(level_starts, fixed, lower, upper):
-    """Whether a solution's levels respect per-DoF bounds on dq (nv each):
-    first_level_out_of_bounds finds none. QPHierarchy keeps the unconstrained solution
-    exactly then."""
-    return first_level_out_of_bounds(level_starts, fixed, lower, upper) == \
-        level_starts.shape[0] - 1
-
-
-@numba.njit(cache=True)
 def first_level_out_of_bounds(level_starts, fixed, lower, upper):
     """The first level of a solution whose dq leaves per-DoF bounds on dq (nv each), the
-    level count if none does: for every DoF not fixed, each level's dq (level_starts:
-    (levels + 1) x nv, the start then each level's result) must stay inside them or not go
-    further out than the level before left it; 0 when a free DoF's bounds exclude 0. The
-    levels before it are what QPHierarchy's cascade would keep."""
+    level count if none does (QPHierarchy then keeps the unconstrained solution exactly):
+    for every DoF not fixed, each level's dq (level_starts: (levels + 1) x nv, the start
+    then each level's result) must stay inside them or not go further out than the level
+    before left it; 0 when a free DoF's bounds exclude 0. The levels before it are what
+    QPHierarchy's cascade would keep."""
     first = level_starts.shape[0] - 1
     for dof in range(len(fixed)):
         if fixed[dof]:

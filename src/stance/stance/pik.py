@@ -91,7 +91,7 @@ class PIKSolver:
         an object with solve_stacked(); one whose `uses_bounds` is true also receives
         per-DoF bounds on dq, and one with an `unconstrained` DampedHierarchy (as
         QPHierarchy) must return that hierarchy's solution wherever its levels stay within
-        the bounds (hierarchy.levels_within_bounds): the compiled clamping loop relies on
+        the bounds (hierarchy.first_level_out_of_bounds): the compiled clamping loop relies on
         it.
     limit_models: limit models beyond the robot's 1-DoF joints (e.g. swing joints, joint
         groups, which take their joints from the revolute model); their DoFs must not

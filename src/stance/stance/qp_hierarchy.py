@@ -21,8 +21,9 @@ comes first, and when every level's dq respects the bounds (most steps: progress
 clamping keeps joints off their limits) its solution is the answer, restart state
 included (a re-solve of the clamping loop then restarts where it can); the cascade below
 runs only when a level crosses a bound, from that level on (the levels above are the
-unconstrained solve's). It is compiled (numba) but for ProxSuite and the exact active-set
-fallback.
+unconstrained solve's). It is compiled (numba: cascade_compiled) but for ProxSuite and the
+exact active-set fallback, and PIKSolver's compiled clamping loop runs it in the same call
+as long as the hot starts below find their KKT points.
 
 A level that crosses a bound is first polished from its hot start, the active set it
 ended with last time (kept by DoF, per level and per pattern of fixed DoFs: the clamping
