@@ -16,9 +16,11 @@ from stance.hierarchy import DampedHierarchy, Level, stack_levels
 from stance.pik import PIKSolver, default_stack_specs
 from stance import qp_hierarchy
 from stance.qp_hierarchy import (CERTIFIED, COLD_MAX_ITERATIONS, INNER_MAX_ITERATIONS,
-                                 WARM_MAX_ITERATIONS, QPHierarchy, _active_set_solve,
-                                 _nonnegative_residual, _polish, robot_dof_names)
+                                 WARM_MAX_ITERATIONS, KeptActiveSets, QPHierarchy,
+                                 _active_set_solve, _kept_slot, _nonnegative_residual,
+                                 _polish, robot_dof_names)
 from stance.robot import Robot
+from stance.stack import parse_stack_yaml
 from stance_tools.bench import (HANDS_FORWARD, TALOS_LEVEL_STACK, bench_start,
                                 level_contenders, limit_excess)
 
@@ -410,6 +412,66 @@ def test_compiled_clamping_loop_runs_the_cascades_and_hands_over_for_proxsuite(t
         cascaded += len(handed_over) == before[0] and hierarchy.hot_starts > before[2]
         q = expected.q
     assert cascaded > 50 and len(handed_over) >= 1
+
+
+def test_compiled_cascades_follow_a_stack_change(talos):
+    """The kept active sets belong to one stack shape: when the posture level comes and
+    goes (set_stack mid-approach) the compiled loop's cascades still give the general
+    loop's bits, on the new shape and on the old one again."""
+    start = bench_start(talos)
+    contenders = [four_level_qp_contender(talos, start) for _ in range(2)]
+    compiled, general = (contender.solver for contender in contenders)
+    general._one_call_loop = False
+    specs = parse_stack_yaml(TALOS_LEVEL_STACK)
+    targets = {name: compiled.task(name).target for name in compiled.tasks}
+    q, cascaded = start, 0
+    three_levels = [spec for spec in specs if spec.kind != "posture"]
+    for stack in (three_levels, specs, three_levels):
+        for solver in (compiled, general):
+            solver.set_stack(stack, q)
+            for spec in stack:
+                solver.task(spec.name).target = targets[spec.name]
+        for _ in range(40):
+            before = compiled.hierarchy.hot_starts
+            expected, result = general.step(q), compiled.step(q)
+            assert result.dq.tobytes() == expected.dq.tobytes()
+            assert result.binding_constraints == expected.binding_constraints
+            assert [level.step_residual_norm for level in result.levels] == \
+                [level.step_residual_norm for level in expected.levels]
+            cascaded += compiled.hierarchy.hot_starts > before
+            q = expected.q
+    assert cascaded > 20
+
+
+def test_cascade_state_follows_the_problem_shape():
+    """The compiled loop's cascade state is rebuilt for each new stack shape (numba does
+    not check bounds: a 3-level table read for 4 levels reads other memory), the hot-start
+    counter kept."""
+    hierarchy = QPHierarchy()
+    for level_count, nv in ((3, 5), (4, 5), (4, 7), (3, 5)):
+        kept_free, sides, known, used, counters, enforced, residuals = \
+            hierarchy.cascade_state(level_count, nv)
+        assert sides.shape[1:] == (level_count, nv) and known.shape[1] == level_count
+        assert kept_free.shape[1] == nv and enforced.shape == (nv,)
+        assert residuals.shape == (level_count,) and counters is hierarchy._counters
+
+
+def test_kept_active_sets_are_least_recently_used_slots():
+    """A pattern of free DoFs seen before gets its own slot back; a new one starts from a
+    copy of the sets used last, in an empty slot or else the least recently used one."""
+    kept = KeptActiveSets.empty(1, 2)
+    kept = KeptActiveSets(kept.free[:2], kept.sides[:2], kept.known[:2], kept.used[:2])
+    patterns = [np.array(pattern) for pattern in ([True, True], [True, False], [False, True])]
+    first = _kept_slot(patterns[0], *kept)
+    kept.sides[first, 0] = [1, -1]
+    kept.known[first, 0] = True
+    second = _kept_slot(patterns[1], *kept)
+    assert second != first and list(kept.sides[second, 0]) == [1, -1] and kept.known[second, 0]
+    kept.sides[second, 0] = [-1, 0]
+    assert _kept_slot(patterns[0], *kept) == first       # seen: its own sets, now last used
+    assert list(kept.sides[first, 0]) == [1, -1]
+    assert _kept_slot(patterns[2], *kept) == second       # full: the least recently used
+    assert list(kept.sides[second, 0]) == [1, -1]         # a copy of the last used sets
 
 
 def test_polish_lets_a_joining_bound_replace_the_one_it_conflicts_with():
