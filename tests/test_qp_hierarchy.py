@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
 
 from helpers.problems import hierarchy_problems, residual
-from stance.hierarchy import DampedHierarchy, Level, stack_levels
+from stance.hierarchy import (DampedHierarchy, Level, excludes_zero, first_level_out_of_bounds,
+                             solve_compiled, stack_levels)
 from stance.pik import PIKSolver, default_stack_specs
 from stance import qp_hierarchy
 from stance.qp_hierarchy import (CERTIFIED, COLD_MAX_ITERATIONS, INNER_MAX_ITERATIONS,
@@ -200,6 +201,37 @@ def test_the_compiled_solve_is_the_answer_exactly_where_no_level_crosses_a_bound
     np.testing.assert_allclose(solution.dq, cascade.dq, rtol=0, atol=AGREEMENT)
     assert (solution.restart is not None) == (reference.qp_solves == 0)
     assert solver.qp_solves == reference.qp_solves
+
+
+@PROPERTY
+@given(bounded_problems())
+def test_the_unconstrained_solve_stops_at_the_first_level_out_of_bounds(problem):
+    """solve_compiled given bounds (the compiled clamping loop's solve) stops after the
+    dq of the first level that leaves them: first_level_out_of_bounds of the full solve,
+    whose bits it has up to there; within the bounds it is the full solve."""
+    levels, nv, fixed_index, fixed_dq, (lower, upper) = problem
+    jacobian, target, offsets = stack_levels(levels, nv)
+    fixed, values = ~free_mask(nv, fixed_index), np.zeros(nv)
+    values[fixed_index] = fixed_dq
+    runs = []
+    for bounds in ((np.zeros(0), np.zeros(0)), (lower, upper)):
+        state = (np.zeros((len(levels), nv, nv)), np.zeros(len(levels), dtype=np.int64),
+                 np.zeros((len(levels) + 1, nv)), np.zeros((len(levels), nv)),
+                 np.zeros(len(levels)))
+        dq, stop = solve_compiled(jacobian, target, offsets, fixed, values,
+                                  np.zeros(0, dtype=bool), np.zeros(0), *state, DAMPING,
+                                  1e-9, *bounds)
+        runs.append((dq, stop, state))
+    (full_dq, full_stop, full), (dq, stop, stopped) = runs
+    assert full_stop == len(levels)
+    if excludes_zero(fixed, lower, upper):
+        return                      # the clamping loop cascades at once: no such solve
+    assert stop == first_level_out_of_bounds(full[2], fixed, lower, upper)
+    assert stopped[2][:stop + 2].tobytes() == full[2][:stop + 2].tobytes()
+    assert stopped[1][:stop + 1].tobytes() == full[1][:stop + 1].tobytes()
+    if stop == len(levels):
+        assert dq.tobytes() == full_dq.tobytes()
+        assert stopped[4].tobytes() == full[4].tobytes()
 
 
 @PROPERTY

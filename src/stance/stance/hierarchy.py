@@ -123,7 +123,8 @@ class DampedHierarchy:
             old_fixed, old_values = np.zeros(0, dtype=np.bool_), np.zeros(0)
         dq = solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_values,
                             state.level_bases, state.level_ranks, state.level_starts,
-                            level_steps, residuals, self.damping, self.rank_tolerance)
+                            level_steps, residuals, self.damping, self.rank_tolerance,
+                            _NO_BOUNDS, _NO_BOUNDS)[0]
         return HierarchySolution(dq=dq, step_residuals=residuals, level_steps=level_steps,
                                  restart=state)
 
@@ -150,15 +151,20 @@ def stack_levels(levels, nv: int):
     return jacobian, target, offsets
 
 
+_NO_BOUNDS = np.zeros(0)      # solve_compiled's lower and upper: solve every level
+
+
 @numba.njit(cache=True, fastmath=REORDERING)
 def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_values,
                    level_bases, level_ranks, level_starts, level_steps, residuals, damping,
-                   rank_tolerance):
+                   rank_tolerance, lower, upper):
     """DampedHierarchy.solve_stacked in one compiled call (one dispatch instead of several):
     restart from the state of a solution with old_fixed / old_values when they are given
     (non-empty) and allow it (level_steps and residuals are then that solution's copies),
-    else solve from the first level; arrays filled in place as by _solve_levels. Returns
-    dq."""
+    else solve from the first level; arrays filled in place as by solve_levels, which
+    stops at a level whose dq leaves the bounds lower, upper on dq (nv each; empty: none).
+    Returns (dq, that level or the level count: first_level_out_of_bounds of the solution
+    when its levels before the restart were within the bounds)."""
     first = -1
     if len(old_fixed):
         first, dq, basis = _restart_point(jacobian, offsets, old_fixed, old_values, fixed,
@@ -168,8 +174,9 @@ def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_valu
         first, dq, basis = 0, values.copy(), _free_axes(fixed)
         level_steps[:] = 0.0
         residuals[:] = 0.0
-    return _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
-                         level_bases, level_ranks, level_starts, damping, rank_tolerance)
+    return solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
+                         level_bases, level_ranks, level_starts, damping, rank_tolerance,
+                         fixed, lower, upper)
 
 
 @numba.njit(cache=True)
@@ -178,20 +185,34 @@ def first_level_out_of_bounds(level_starts, fixed, lower, upper):
     level count if none does (QPHierarchy then keeps the unconstrained solution exactly):
     for every DoF not fixed, each level's dq (level_starts: (levels + 1) x nv, the start
     then each level's result) must stay inside them or not go further out than the level
-    before left it; 0 when a free DoF's bounds exclude 0. The levels before it are what
-    QPHierarchy's cascade would keep."""
-    first = level_starts.shape[0] - 1
+    before left it (_leaves_bounds); 0 when a free DoF's bounds exclude 0. The levels
+    before it are what QPHierarchy's cascade would keep."""
+    if excludes_zero(fixed, lower, upper):
+        return 0
+    for level in range(level_starts.shape[0] - 1):
+        if _leaves_bounds(level_starts[level], level_starts[level + 1], fixed, lower, upper):
+            return level
+    return level_starts.shape[0] - 1
+
+
+@numba.njit(cache=True)
+def excludes_zero(fixed, lower, upper):
+    """Whether a free DoF's bounds on dq (nv each) exclude 0."""
     for dof in range(len(fixed)):
-        if fixed[dof]:
-            continue
-        if lower[dof] > 0.0 or upper[dof] < 0.0:
-            return 0
-        for level in range(first):
-            before, after = level_starts[level, dof], level_starts[level + 1, dof]
-            if after < min(lower[dof], before) or after > max(upper[dof], before):
-                first = level
-                break
-    return first
+        if not fixed[dof] and (lower[dof] > 0.0 or upper[dof] < 0.0):
+            return True
+    return False
+
+
+@numba.njit(cache=True)
+def _leaves_bounds(before, after, fixed, lower, upper):
+    """Whether a level's dq, from `before` to `after` (nv each), takes a free DoF outside
+    its bounds (lower, upper: nv each), or further out than `before` was."""
+    for dof in range(len(fixed)):
+        if not fixed[dof] and (after[dof] < min(lower[dof], before[dof])
+                               or after[dof] > max(upper[dof], before[dof])):
+            return True
+    return False
 
 
 @numba.njit(cache=True)
@@ -246,11 +267,15 @@ def _restart_point(jacobian, offsets, old_fixed, old_values, fixed, values, leve
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
-                  level_bases, level_ranks, level_starts, damping, rank_tolerance):
+def solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
+                  level_bases, level_ranks, level_starts, damping, rank_tolerance, fixed,
+                  lower, upper):
     """Solve levels first, first + 1, ... from dq and the nullspace basis left by the levels
     above; fill their level_steps and residuals, and per level the basis and dq it started
-    from (all in place). Returns the final dq."""
+    from (all in place), then the final dq. With bounds lower, upper on dq (nv each; empty:
+    none), stop after the dq of a level that leaves them (_leaves_bounds; the DoFs fixed
+    are exempt): its residual and the levels below are left unsolved. Returns (dq, that
+    level or the level count)."""
     level_count = len(offsets) - 1
     damping_sq = damping * damping
     for level in range(first, level_count):
@@ -266,6 +291,9 @@ def _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, resi
             level_steps[level] = _times(basis, _damped_least_squares(
                 projected, wanted - _times(rows, dq), damping_sq))
             dq += level_steps[level]
+            if len(lower) and _leaves_bounds(level_starts[level], dq, fixed, lower, upper):
+                level_starts[level + 1] = dq
+                return dq, level
             if level < level_count - 1:
                 basis = _nullspace_update(projected, basis, rank_tolerance)
         square = 0.0
@@ -273,7 +301,7 @@ def _solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, resi
             square += value * value
         residuals[level] = np.sqrt(square)
     level_starts[level_count] = dq
-    return dq
+    return dq, level_count
 
 
 @numba.njit(cache=True, fastmath=REORDERING)

@@ -27,8 +27,8 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from .hierarchy import (DampedHierarchy, HierarchySolution, first_level_out_of_bounds,
-                        restartable_solution, solve_compiled)
+from .hierarchy import (DampedHierarchy, HierarchySolution, excludes_zero,
+                        restartable_solution, solve_compiled, solve_levels)
 from .limits import RevoluteLimits, fix_joints, make_strategy
 from .qp_hierarchy import KeptActiveSets, QPHierarchy, cascade_compiled
 from .robot import RobotModelError
@@ -429,29 +429,34 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
     while True:
         now_fixed, values = fixed.copy(), fixed_dq.copy()   # fixed_dq is 0 where free
         dq = values
-        if cascades and _excludes_zero(now_fixed, lower, upper):
+        if len(lower) and excludes_zero(now_fixed, lower, upper):
             first = -1              # QPHierarchy cascades at once, no unconstrained solve
-        else:
-            dq = solve_compiled(jacobian, target, offsets, now_fixed, values, solved_fixed,
-                                solved_values, level_bases, level_ranks, level_starts,
-                                level_steps, residuals, damping, rank_tolerance)
-            first = first_level_out_of_bounds(level_starts, now_fixed, lower, upper) \
-                if len(lower) else levels
+        else:   # stops at the first level that leaves the bounds: the cascade's start
+            dq, first = solve_compiled(jacobian, target, offsets, now_fixed, values,
+                                       solved_fixed, solved_values, level_bases,
+                                       level_ranks, level_starts, level_steps, residuals,
+                                       damping, rank_tolerance, lower, upper)
         cascaded = first < levels
-        if cascaded:
-            if not cascades:
-                return (dq, level_steps, residuals, solutions, False, False, now_fixed,
-                        values, level_bases, level_ranks, level_starts)
+        if cascaded and cascades:
             enforced[:] = False
             cascade_residuals[:] = 0.0
-            reached, dq = cascade_compiled(
+            reached = cascade_compiled(
                 jacobian, target, offsets, now_fixed, values, lower, upper, first,
                 level_bases, level_ranks, level_starts, residuals, kept_free, kept_sides,
                 kept_known, kept_used, counters, True, enforced, cascade_residuals, damping,
-                rank_tolerance)[:2]
-            if reached < levels:
-                return (dq, level_steps, residuals, solutions, False, True, now_fixed,
-                        values, level_bases, level_ranks, level_starts)
+                rank_tolerance)
+            dq = reached[1]
+        if cascaded and (not cascades or reached[0] < levels):
+            if first >= 0:          # the rest of the unconstrained solution to restart from
+                dq = solve_levels(jacobian, target, offsets, first,
+                                   level_starts[first].copy(),
+                                   np.ascontiguousarray(
+                                       level_bases[first, :, :level_ranks[first]]),
+                                   level_steps, residuals, level_bases, level_ranks,
+                                   level_starts, damping, rank_tolerance, now_fixed,
+                                   no_values, no_values)[0]
+            return (dq, level_steps, residuals, solutions, False, cascaded, now_fixed,
+                    values, level_bases, level_ranks, level_starts)
         solutions += 1
         if fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
                       h) == 0:
@@ -460,15 +465,6 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
                     level_starts)
         solved_fixed, solved_values = (no_fixed, no_values) if cascaded else \
             (now_fixed, values)
-
-
-@numba.njit(cache=True)
-def _excludes_zero(fixed, lower, upper):
-    """Whether a free DoF's bounds on dq (nv each) exclude 0."""
-    for dof in range(len(fixed)):
-        if not fixed[dof] and (lower[dof] > 0.0 or upper[dof] < 0.0):
-            return True
-    return False
 
 
 @numba.njit(cache=True)
