@@ -576,8 +576,8 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         # the bound that just joined pivots first: the rows it conflicts with are then the
         # dependent ones, which miss their value and leave (it replaces them)
         leading = np.searchsorted(index, joined) if joined >= 0 and active[joined] else -1
-        step, multiplier, factorization = _on_active_rows(projected, residual, damping,
-                                                          active_rows, value, leading)
+        step, multiplier, factorization, led = _on_active_rows(projected, residual, damping,
+                                                               active_rows, value, leading)
         rank = factorization[4]
         reach = rows @ step
         missed = np.abs(reach[index] - value) > FEASIBILITY_SLACK
@@ -609,25 +609,26 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
                                               slack) <= slack
         if certified:
             return _on_tight_rows(projected, residual, damping, rows, low, high, reach,
-                                  step, active, upper_side, leading)
+                                  step, active, upper_side, led)
         active[index[np.argmin(signed)]] = False
     return step, active, upper_side, NO_KKT_POINT
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _on_tight_rows(projected, residual, damping, rows, low, high, reach, step, active,
-                   upper_side, leading):
+                   upper_side, led):
     """The certified step of _polish, made independent of the active set that certified
     it: at a degenerate vertex several sets do (ProxSuite's duals gave two fresh solvers
     two of them, and steps 3e-14 apart). Every bound the step is on (within
     FEASIBILITY_SLACK; the upper one first) holds at the optimum, so the optimum on all
     of them as equalities is the same point: solved again on them, without a leading
-    pivot, unless that is what the step already came from. Returns _polish's tuple with
+    pivot, unless that is what the step already came from (led: whether its
+    factorization had one). Returns _polish's tuple with
     the certifying set (the better hot start: the tight set's extra rows would only
     have to leave again)."""
     on_upper = (np.abs(reach - high) <= FEASIBILITY_SLACK) & np.isfinite(high)
     tight = on_upper | ((np.abs(reach - low) <= FEASIBILITY_SLACK) & np.isfinite(low))
-    if leading < 0 and np.array_equal(tight, active) and \
+    if not led and np.array_equal(tight, active) and \
             np.array_equal(on_upper, upper_side & active):
         return step, active, upper_side, CERTIFIED
     index = np.flatnonzero(tight)
@@ -641,13 +642,19 @@ def _on_tight_rows(projected, residual, damping, rows, low, high, reach, step, a
 def _on_active_rows(projected, residual, damping, active_rows, value, leading):
     """argmin |P y - r|^2 + damping^2 |y|^2 subject to active_rows y = value (least squares
     on dependent rows), by the nullspace method on a pivoted QR of active_rows^T (row
-    `leading` pivoted first, if >= 0): y = Q (t, z), t from R11^T t = the kept rows'
-    values, z the damped least squares of (P Q)_2 z = r - (P Q)_1 t (_damped_least_squares;
-    Q applied by its reflectors, never formed). Returns (y, one set of multipliers mu with
-    active_rows^T mu = g - H y, H = P^T P + damping^2 I and g = P^T r, the factorization
-    of _pivoted_qr)."""
+    `leading` pivoted first if >= 0 and the rows are dependent: the ones it conflicts
+    with are then the dependent ones; independent rows give the same point either way):
+    y = Q (t, z), t from R11^T t = the kept rows' values, z the damped least squares of
+    (P Q)_2 z = r - (P Q)_1 t (_damped_least_squares; Q applied by its reflectors, never
+    formed). Returns (y, one set of multipliers mu with active_rows^T mu = g - H y,
+    H = P^T P + damping^2 I and g = P^T r, the factorization of _pivoted_qr, whether
+    `leading` led it)."""
     variables = projected.shape[1]
-    factorization = _pivoted_qr(np.ascontiguousarray(active_rows.T), leading)
+    transposed = np.ascontiguousarray(active_rows.T)
+    factorization = _pivoted_qr(transposed, -1)
+    led = leading >= 0 and factorization[4] < len(value)
+    if led:
+        factorization = _pivoted_qr(transposed, leading)
     triangular, order, rank = factorization[2], factorization[3], factorization[4]
     kept = value[order[:rank]]
     coordinates = np.zeros(variables)   # (t, z): y in the basis of Q's columns
@@ -668,7 +675,7 @@ def _on_active_rows(projected, residual, damping, active_rows, value, leading):
     multiplier = np.zeros(len(value))
     multiplier[order[:rank]] = _basic_solution(factorization,
                                                _descent(projected, residual, damping, step))
-    return step, multiplier, factorization
+    return step, multiplier, factorization, led
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
