@@ -122,6 +122,9 @@ class PIKSolver:
         usable = speed_step > 0
         self._speed_index = robot.limited_v_index[usable] if np.any(usable) else None
         self._inverse_speed_step = 1.0 / speed_step[usable]
+        # |dq| bound per 1-DoF joint from its velocity limit over dt (inf: none)
+        self._speed_bound = np.where(usable, speed_step, np.inf) if dt is not None else \
+            np.full(len(robot.limited_v_index), np.inf)
         self._no_level_steps = np.zeros((0, robot.model.nv))
         self.tasks = {}
         self._needs_com = False
@@ -373,19 +376,9 @@ class PIKSolver:
     def _dq_bounds(self, q):
         """Per-DoF bounds on dq (nv each): the 1-DoF joint limits, never requiring a start
         outside them to move further out, and velocity limits over dt; +-inf elsewhere."""
-        nv = self.robot.model.nv
-        lower, upper = np.full(nv, -np.inf), np.full(nv, np.inf)
         robot = self.robot
-        current = q[robot.limited_q_index]
-        v_index = robot.limited_v_index
-        lower[v_index] = np.minimum(robot.lower - current, 0.0)
-        upper[v_index] = np.maximum(robot.upper - current, 0.0)
-        if self.dt is not None:
-            speed = robot.velocity_limit * self.dt
-            usable = speed > 0
-            lower[v_index[usable]] = np.maximum(lower[v_index[usable]], -speed[usable])
-            upper[v_index[usable]] = np.minimum(upper[v_index[usable]], speed[usable])
-        return lower, upper
+        return _joint_dq_bounds(q, robot.limited_q_index, robot.limited_v_index, robot.lower,
+                                robot.upper, self._speed_bound, robot.model.nv)
 
     def _within_velocity_limits(self, solution, fixed_dq: np.ndarray) -> tuple:
         """(dq, factor): the solution under the 1-DoF joints' velocity limits over dt, lowest
@@ -465,6 +458,21 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
                     level_starts)
         solved_fixed, solved_values = (no_fixed, no_values) if cascaded else \
             (now_fixed, values)
+
+
+@numba.njit(cache=True)
+def _joint_dq_bounds(q, q_index, v_index, lower_limit, upper_limit, speed_bound, nv):
+    """PIKSolver._dq_bounds in one compiled call: (lower, upper) on dq (nv each) from the
+    1-DoF joints' limits (q_index, v_index, limits: per joint) at configuration q, 0 kept
+    inside them, and |dq| <= speed_bound; +-inf for the other DoFs."""
+    lower, upper = np.full(nv, -np.inf), np.full(nv, np.inf)
+    for joint in range(len(q_index)):
+        current = q[q_index[joint]]
+        low = np.minimum(lower_limit[joint] - current, 0.0)
+        high = np.maximum(upper_limit[joint] - current, 0.0)
+        lower[v_index[joint]] = np.maximum(low, -speed_bound[joint])
+        upper[v_index[joint]] = np.minimum(high, speed_bound[joint])
+    return lower, upper
 
 
 @numba.njit(cache=True)
