@@ -175,8 +175,8 @@ def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_valu
         level_steps[:] = 0.0
         residuals[:] = 0.0
     return solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
-                         level_bases, level_ranks, level_starts, damping, rank_tolerance,
-                         fixed, lower, upper)
+                        level_bases, level_ranks, level_starts, damping, rank_tolerance,
+                        fixed, lower, upper)
 
 
 @numba.njit(cache=True)
@@ -268,8 +268,8 @@ def _restart_point(jacobian, offsets, old_fixed, old_values, fixed, values, leve
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
-                  level_bases, level_ranks, level_starts, damping, rank_tolerance, fixed,
-                  lower, upper):
+                 level_bases, level_ranks, level_starts, damping, rank_tolerance, fixed,
+                 lower, upper):
     """Solve levels first, first + 1, ... from dq and the nullspace basis left by the levels
     above; fill their level_steps and residuals, and per level the basis and dq it started
     from (all in place), then the final dq. With bounds lower, upper on dq (nv each; empty:

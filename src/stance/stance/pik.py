@@ -91,8 +91,8 @@ class PIKSolver:
         an object with solve_stacked(); one whose `uses_bounds` is true also receives
         per-DoF bounds on dq, and one with an `unconstrained` DampedHierarchy (as
         QPHierarchy) must return that hierarchy's solution wherever its levels stay within
-        the bounds (hierarchy.first_level_out_of_bounds): the compiled clamping loop relies on
-        it.
+        the bounds (hierarchy.first_level_out_of_bounds): the compiled clamping loop
+        relies on it.
     limit_models: limit models beyond the robot's 1-DoF joints (e.g. swing joints, joint
         groups, which take their joints from the revolute model); their DoFs must not
         overlap. Each has v_index, dof_names, fix(), keep_inside() and warm_up(q), as
@@ -266,8 +266,7 @@ class PIKSolver:
          solved_values, level_bases, level_ranks, level_starts) = _clamping_loop(
             jacobian, target, offsets, q, limits.indices, limits.table,
             self.strategy.progressive, fixed, fixed_dq, h, unconstrained.damping,
-            unconstrained.rank_tolerance, lower, upper, cascades,
-            cascade_state)
+            unconstrained.rank_tolerance, lower, upper, cascades, cascade_state)
         if finished and cascaded:
             enforced = cascade_state[-2]    # scratch arrays: the next step reuses them
             return hierarchy.cascade_solution(dq, residuals.copy(), enforced, lower,
@@ -442,12 +441,12 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
         if cascaded and (not cascades or reached[0] < levels):
             if first >= 0:          # the rest of the unconstrained solution to restart from
                 dq = solve_levels(jacobian, target, offsets, first,
-                                   level_starts[first].copy(),
-                                   np.ascontiguousarray(
-                                       level_bases[first, :, :level_ranks[first]]),
-                                   level_steps, residuals, level_bases, level_ranks,
-                                   level_starts, damping, rank_tolerance, now_fixed,
-                                   no_values, no_values)[0]
+                                  level_starts[first].copy(),
+                                  np.ascontiguousarray(
+                                      level_bases[first, :, :level_ranks[first]]),
+                                  level_steps, residuals, level_bases, level_ranks,
+                                  level_starts, damping, rank_tolerance, now_fixed,
+                                  no_values, no_values)[0]
             return (dq, level_steps, residuals, solutions, False, cascaded, now_fixed,
                     values, level_bases, level_ranks, level_starts)
         solutions += 1

@@ -573,8 +573,9 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         index = np.flatnonzero(active)
         value = np.where(upper_side[index], high[index], low[index])
         active_rows = np.ascontiguousarray(rows[index])
-        # the bound that just joined pivots first: the rows it conflicts with are then the
-        # dependent ones, which miss their value and leave (it replaces them)
+        # where the active rows are dependent, the bound that just joined pivots first:
+        # the rows it conflicts with are then the dependent ones, which miss their value
+        # and leave (it replaces them)
         leading = np.searchsorted(index, joined) if joined >= 0 and active[joined] else -1
         step, multiplier, factorization, led = _on_active_rows(projected, residual, damping,
                                                                active_rows, value, leading)
@@ -623,9 +624,8 @@ def _on_tight_rows(projected, residual, damping, rows, low, high, reach, step, a
     FEASIBILITY_SLACK; the upper one first) holds at the optimum, so the optimum on all
     of them as equalities is the same point: solved again on them, without a leading
     pivot, unless that is what the step already came from (led: whether its
-    factorization had one). Returns _polish's tuple with
-    the certifying set (the better hot start: the tight set's extra rows would only
-    have to leave again)."""
+    factorization had one). Returns _polish's tuple with the certifying set (the better
+    hot start: the tight set's extra rows would only have to leave again)."""
     on_upper = (np.abs(reach - high) <= FEASIBILITY_SLACK) & np.isfinite(high)
     tight = on_upper | ((np.abs(reach - low) <= FEASIBILITY_SLACK) & np.isfinite(low))
     if not led and np.array_equal(tight, active) and \
