@@ -30,7 +30,7 @@ import pinocchio as pin
 from .hierarchy import (DampedHierarchy, HierarchySolution, excludes_zero,
                         restartable_solution, solve_compiled, solve_levels)
 from .limits import RevoluteLimits, fix_joints, make_strategy
-from .qp_hierarchy import KeptActiveSets, QPHierarchy, cascade_compiled
+from .qp_hierarchy import QPHierarchy, cascade_compiled, empty_cascade_state
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
 from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
@@ -552,10 +552,8 @@ def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
 HIERARCHIES = ("svd", "qp")
 
 
-# _clamping_loop's cascade_state (QPHierarchy.cascade_state, enforced, cascade residuals)
-# for a hierarchy without cascades
-_NO_CASCADE_STATE = (*KeptActiveSets.empty(0, 0), np.zeros(1, dtype=np.int64),
-                     np.zeros(0, dtype=np.bool_), np.zeros(0))
+# _clamping_loop's cascade_state (QPHierarchy.cascade_state) for a hierarchy without cascades
+_NO_CASCADE_STATE = empty_cascade_state(0, 0, np.zeros(1, dtype=np.int64))
 
 
 def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):

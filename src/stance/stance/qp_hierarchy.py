@@ -63,8 +63,8 @@ from proxsuite import proxqp
 
 from .hierarchy import (REORDERING, DampedHierarchy, HierarchySolution, Level,
                         _damped_least_squares, _free_axes, _nullspace_update,
-                        _sparse_rows_product, _times, first_level_out_of_bounds,
-                        stack_levels)
+                        _sparse_rows_product, _times, excludes_zero,
+                        first_level_out_of_bounds, stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
 # ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
@@ -134,6 +134,13 @@ class KeptActiveSets(NamedTuple):
                    np.zeros(MAX_KEPT_SETS, dtype=np.int64))
 
 
+def empty_cascade_state(level_count: int, nv: int, counters) -> tuple:
+    """QPHierarchy.cascade_state's tuple for problems of this shape, no active set kept:
+    KeptActiveSets' four arrays, the counters, enforced (bool, nv), residuals (levels)."""
+    return (*KeptActiveSets.empty(level_count, nv), counters, np.zeros(nv, dtype=np.bool_),
+            np.zeros(level_count))
+
+
 # cascade_compiled's unconstrained solution state when there is none
 _NO_LEVEL_BASES, _NO_LEVEL_STARTS = np.zeros((0, 0, 0)), np.zeros((0, 0))
 _NO_LEVEL_RANKS, _NO_RESIDUALS = np.zeros(0, dtype=np.int64), np.zeros(0)
@@ -173,11 +180,9 @@ class QPHierarchy:
         #                           is feasible but not shown optimal
         self.qp_iterations = 0    # ProxSuite's inner iterations, warm and cold solves
         self._counters = np.zeros(1, dtype=np.int64)  # [hot starts], filled when compiled
-        self._kept = KeptActiveSets.empty(0, 0)
-        self._cascade_state = (*self._kept, self._counters, np.zeros(0, dtype=np.bool_),
-                               np.zeros(0))
+        self._cascade_state = empty_cascade_state(0, 0, self._counters)
         self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
-        self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of self._kept
+        self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of the kept sets
         self._bound_labels = []   # "<dof> lower|upper|velocity", 3 per DoF (_binding_codes)
 
     @classmethod
@@ -200,10 +205,10 @@ class QPHierarchy:
         free = np.ones(nv, dtype=bool)
         free[np.asarray(fixed_index, dtype=int)] = False
         lower, upper = _checked_bounds(bounds, nv)
-        if np.any(free & ((lower > 0.0) | (upper < 0.0))):  # 0 is out: no level is kept
+        level_count, fixed = len(offsets) - 1, ~free
+        if excludes_zero(fixed, lower, upper):  # 0 is out: no level is kept
             return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free,
                                  lower, upper)
-        level_count, fixed = len(offsets) - 1, ~free
         state = getattr(previous, "restart", None)
         # a restart that fixes more joints keeps the previous solution's levels above the
         # restart level, starts included (without the new joints' values): usable when
@@ -241,7 +246,8 @@ class QPHierarchy:
                                      state.level_starts, unconstrained.step_residuals)),
             *cascade_state[:5], self.hot_start, enforced, residuals, self.damping,
             self.rank_tolerance)
-        self._active_sides, self._known_sides = self._kept.sides[slot], self._kept.known[slot]
+        kept = KeptActiveSets(*cascade_state[:4])
+        self._active_sides, self._known_sides = kept.sides[slot], kept.known[slot]
         while level < level_count:
             given_step, given_dofs = self._qp_level_step(level, projected, residual, basis,
                                                          dq, bounded, lower, upper)
@@ -262,10 +268,8 @@ class QPHierarchy:
         the KeptActiveSets' four arrays (emptied when the shape changes: a new stack), the
         counters, then scratch arrays for a compiled caller's cascades: enforced DoFs
         (bool, nv) and level residuals (levels)."""
-        if self._kept.sides.shape[1:] != (level_count, nv):
-            self._kept = KeptActiveSets.empty(level_count, nv)
-            self._cascade_state = (*self._kept, self._counters, np.zeros(nv, dtype=np.bool_),
-                                   np.zeros(level_count))
+        if KeptActiveSets(*self._cascade_state[:4]).sides.shape[1:] != (level_count, nv):
+            self._cascade_state = empty_cascade_state(level_count, nv, self._counters)
         return self._cascade_state
 
     def warm_up(self) -> None:
