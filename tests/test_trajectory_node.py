@@ -392,8 +392,8 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
     the clock waits at every one (for the landing sole, for the CoM); the stance is
     announced again stamped when it was reached, the JointTrajectory again with its start
     shifted, and pik_node's own status shows what was late off target when due and every
-    created contact and the CoM on target when reached. Its own pair of nodes in another
-    DDS domain."""
+    created contact and the CoM on target before it was announced reached. Its own pair of
+    nodes in another DDS domain."""
     robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:5])
     planner = TransitionPlanner(robot, scene, CollisionModel(robot, scene), steps=STEPS)
@@ -429,22 +429,28 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
     tolerance = {**{spot: ARRIVAL_TOLERANCE[0] for spot in frames},
                  "com": ARRIVAL_COM_TOLERANCE}
 
-    def offsets(k, stamp):
-        """{created spot or 'com': m off its arrival target} in pik_node's status at stamp."""
-        poses = probe.frames_at(stamp)
-        return {"com": np.linalg.norm(poses["com"].translation[:2] - coms[k]),
-                **{spot: np.linalg.norm(poses[spot].translation - target.translation)
+    def offsets(k, frames):
+        """{created spot or 'com': m off its arrival target} in pik_node frames."""
+        return {"com": np.linalg.norm(frames["com"].translation[:2] - coms[k]),
+                **{spot: np.linalg.norm(frames[spot].translation - target.translation)
                    for spot, target in created[k].items()}}
 
+    log = probe.frame_log
+    stamps = np.array([at for at, _ in log])
+    assert np.all(np.diff(stamps) > 0.0), "pik statuses out of order: another publisher?"
     for k, status in waited.items():
         (due, reached) = [stamp_seconds(msg) for _, msg in stances if msg.index == k]
         assert reached > due
         late = status[status.rindex("(") + 1:]      # '(com 17.9 mm off; left_sole ...'
         assert set(created[k]) | {"com"} == {part.split()[0] for part in late.split("; ")}
-        assert all(offset > tolerance[name] for name, offset in offsets(k, due).items())
-        assert all(offset <= tolerance[name] + 1e-4
-                   for name, offset in offsets(k, reached).items()), \
-            (status, offsets(k, reached))
+        assert all(offset > tolerance[name]
+                   for name, offset in offsets(k, probe.frames_at(due)).items())
+        # trajectory_node judged on the newest status it had taken, stamped after due and
+        # at most at reached (which one races with pik_node's period): one of them shows
+        # every created contact and the CoM on target
+        judged = [(at, offsets(k, frames)) for at, frames in log if due < at <= reached]
+        assert any(all(offset <= tolerance[name] + 1e-4 for name, offset in found.items())
+                   for _, found in judged), (status, reached, judged[-5:])
 
 
 def test_a_starved_trajectory_node_slows_the_motion_instead_of_skipping_it(processes,
