@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -283,21 +284,46 @@ class SphericalPolygon(SwingDomain):
         return normal / np.linalg.norm(normal)
 
 
-def damp_swing(domain: SwingDomain, thickness: float, s, s_next, progressive: bool):
-    """Altered next swing (rad) and h for a move s -> s_next (eq. 6-10 and the second-stage
-    clamp), or (None, 0) when the move is left alone. thickness: q_hat (rad)."""
+class SwingPoint:
+    """A swing vector s (rad) with its signed distance to `domain`'s limit (rad) and, once
+    asked for, the limit's outward normal there: what the damping of a move from s needs,
+    computed once however many moves from s the clamping loop tries."""
+
+    def __init__(self, domain: SwingDomain, s):
+        self.domain, self.s = domain, s
+        self.distance = domain.signed_distance(s)
+        self._normal = None
+
+    @property
+    def normal(self) -> np.ndarray:
+        if self._normal is None:
+            self._normal = self.domain.normal_at(self.s)
+        return self._normal
+
+
+class JointRotation(NamedTuple):
+    """A joint rotation at one configuration: R (3x3), its swing point and twist (rad)."""
+    rotation: np.ndarray
+    swing: SwingPoint
+    twist: float
+
+
+def damp_swing(thickness: float, current: SwingPoint, s_next, progressive: bool):
+    """Altered next swing (rad) and h for a move current.s -> s_next (eq. 6-10 and the
+    second-stage clamp), or (None, 0) when the move is left alone. thickness: q_hat (rad)."""
+    domain, s = current.domain, current.s
     distance_next = domain.signed_distance(s_next)
     if distance_next < -OUTSIDE_TOLERANCE:  # eq. 7, then the second stage
         return domain.closest_boundary_point(s_next), 1.0
     if not progressive:
         return None, 0.0
-    depth = (thickness - domain.signed_distance(s)) / thickness          # d_k, eq. 6
+    depth = (thickness - current.distance) / thickness                   # d_k, eq. 6
     depth_next = (thickness - distance_next) / thickness                 # d_{k+1}
     if not depth_next > depth > 0.0:
         return None, 0.0
     h = cubic_step(depth)                                                # eq. 8
     variation = np.asarray(s_next) - s
-    normal = domain.normal_at(s)
+    normal = current.normal
     orthogonal = (variation @ normal) * normal
     damped = s + (1.0 - h) * orthogonal + (variation - orthogonal)       # eq. 10
     if domain.signed_distance(damped) < -OUTSIDE_TOLERANCE:              # second stage
@@ -320,7 +346,7 @@ class SwingTwistRule:
         self.thickness = float(activation)
         self.twist = None if twist is None else RevoluteLimits(
             [f"{name}_twist"], [0], [0], [twist[0]], [twist[1]], activation)
-        self._state_key, self._state = None, None
+        self._state_key, self._state = None, None   # current()'s cache
 
     def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
         """The subclass' decide() written in place into the clamping loop's arrays (fixed,
@@ -335,18 +361,24 @@ class SwingTwistRule:
         self.domain.normal_at(s)
         self.domain.closest_boundary_point(s)
 
-    def may_reach(self, key: bytes, rotation, reach: float, zone: float) -> bool:
-        """Whether the joint rotation `rotation` (its configuration bytes: `key`, a cache key
-        for the clamping loop's repeated questions), turned by at most `reach` rad, may bring
+    def current(self, key: bytes, rotation_at) -> JointRotation:
+        """The joint's rotation at the configuration whose bytes are `key` (rotation_at():
+        that rotation), with its swing point and twist: computed once per configuration,
+        since the clamping loop asks about several moves from the same one."""
+        if self._state_key != key:
+            rotation = rotation_at()
+            s, theta = swing_twist(rotation)
+            self._state_key = key
+            self._state = JointRotation(rotation, SwingPoint(self.domain, s), theta)
+        return self._state
+
+    def may_reach(self, current: JointRotation, reach: float, zone: float) -> bool:
+        """Whether the joint rotation `current`, turned by at most `reach` rad, may bring
         the swing within `zone` rad of its domain's boundary or the twist into its damping
         zone (zone > 0) or past a bound (zone = 0). False is certain: the bone direction
         turns by at most reach, the swing vector by at most reach g with g = a / sin a at
         the largest swing angle a reachable, the twist by at most reach (1 + g)."""
-        if self._state_key != key:
-            s, theta = swing_twist(rotation)
-            self._state_key = key
-            self._state = (s, theta, self.domain.signed_distance(s))
-        s, theta, distance = self._state
+        s, theta, distance = current.swing.s, current.twist, current.swing.distance
         widest = float(np.hypot(s[0], s[1])) + reach
         if widest >= 0.9 * math.pi:
             return True
@@ -360,14 +392,13 @@ class SwingTwistRule:
             (twist.lower[0], twist.upper[0])
         return min(theta - low, high - theta) - reach * (1.0 + stretch) <= 0.0
 
-    def altered(self, rotation, rotation_next, progressive: bool) -> tuple:
+    def altered(self, current: JointRotation, rotation_next, progressive: bool) -> tuple:
         """(altered next rotation or None when the move is left alone, swing h, twist h)
-        for a move of the joint rotation from `rotation` to `rotation_next`."""
-        s, theta = swing_twist(rotation)
+        for a move of the joint rotation from `current` to `rotation_next`."""
         s_next, theta_next = swing_twist(rotation_next)
-        swing_target, swing_h = damp_swing(self.domain, self.thickness, s, s_next,
+        swing_target, swing_h = damp_swing(self.thickness, current.swing, s_next,
                                            progressive)
-        twist_target, twist_h = self._twist_target(theta, theta_next, progressive)
+        twist_target, twist_h = self._twist_target(current.twist, theta_next, progressive)
         if swing_target is None and twist_target is None:
             return None, 0.0, 0.0
         target = rotation_from_swing_twist(
@@ -386,18 +417,17 @@ class SwingTwistRule:
             return None, 0.0
         return theta + decision.dq[0], float(decision.h[0])
 
-    def projected(self, rotation, rotation_next):
-        """rotation_next projected into the limits without moving further out than
-        `rotation`, or None when it needs no projection."""
-        s, theta = swing_twist(rotation)
+    def projected(self, current: JointRotation, rotation_next):
+        """rotation_next projected into the limits without moving further out than the
+        joint rotation `current`, or None when it needs no projection."""
         s_next, theta_next = swing_twist(rotation_next)
         changed = False
-        allowed = min(0.0, self.domain.signed_distance(s))
+        allowed = min(0.0, current.swing.distance)
         if self.domain.signed_distance(s_next) < allowed:
             s_next, changed = self.domain.closest_boundary_point(s_next), True
         if self.twist is not None:
-            current, following = np.array([theta]), np.array([theta_next])
-            self.twist.keep_inside(current, following)
+            twist, following = np.array([current.twist]), np.array([theta_next])
+            self.twist.keep_inside(twist, following)
             changed = changed or following[0] != theta_next
             theta_next = following[0]
         return rotation_from_swing_twist(s_next, theta_next) if changed else None
@@ -434,24 +464,24 @@ class BallLimit(SwingTwistRule):
         if (not np.all(free[self.v_index])
                 or np.linalg.norm(velocity) <= NEGLIGIBLE_VARIATION):
             return _nothing()
-        rotation = self.rotation(q)
-        if not self.may_reach(q[self.q_slice].tobytes(), rotation,
-                              float(np.linalg.norm(velocity)), self.thickness):
+        current = self.current(q[self.q_slice].tobytes(), lambda: self.rotation(q))
+        if not self.may_reach(current, float(np.linalg.norm(velocity)), self.thickness):
             return _nothing()
-        target, swing_h, twist_h = self.altered(rotation, rotation @ pin.exp3(velocity),
-                                                progressive)
+        target, swing_h, twist_h = self.altered(
+            current, current.rotation @ pin.exp3(velocity), progressive)
         if target is None:
             return _nothing()
-        fixed = pin.log3(rotation.T @ target)
+        fixed = pin.log3(current.rotation.T @ target)
         return LimitDecision(self.v_index.copy(), fixed,
                              np.array([swing_h, swing_h, twist_h]))
 
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's joint rotation (in place) into the limits without moving it
         further out than q: removes the negligible overshoot the decisions ignored."""
-        current, following = self.rotation(q), self.rotation(q_next)
-        turn = float(np.linalg.norm(pin.log3(current.T @ following)))
-        if not self.may_reach(q[self.q_slice].tobytes(), current, turn, 0.0):
+        current = self.current(q[self.q_slice].tobytes(), lambda: self.rotation(q))
+        following = self.rotation(q_next)
+        turn = float(np.linalg.norm(pin.log3(current.rotation.T @ following)))
+        if not self.may_reach(current, turn, 0.0):
             return
         rotation = self.projected(current, following)
         if rotation is not None:
@@ -645,12 +675,10 @@ class JointGroupLimit(SwingTwistRule):
             return _nothing()
         h, altered = np.zeros(len(angles)), np.zeros(len(angles), dtype=bool)
         target = None
-        rotation = _group_rotation(self.placements, self.axis_index, angles)[0]
-        if self.may_reach(angles.tobytes(), rotation, float(np.abs(variation).sum()),
-                          self.thickness):
+        current = self.current(angles.tobytes(), lambda: self.rotation_and_axes(angles)[0])
+        if self.may_reach(current, float(np.abs(variation).sum()), self.thickness):
             target, swing_h, twist_h = self.altered(
-                rotation, _group_rotation(self.placements, self.axis_index,
-                                          angles + variation)[0], progressive)
+                current, self.rotation_and_axes(angles + variation)[0], progressive)
         if target is not None:
             reached = self.angles_for(target, angles, movable)
             variation[movable] = reached[movable] - angles[movable]
@@ -672,9 +700,8 @@ class JointGroupLimit(SwingTwistRule):
         have the last word)."""
         angles, following = q[self.q_index], q_next[self.q_index].copy()
         self.bounds.keep_inside(angles, following)
-        start = self.rotation_and_axes(angles)[0]
-        if not self.may_reach(angles.tobytes(), start,
-                              float(np.sum(np.abs(following - angles))), 0.0):
+        start = self.current(angles.tobytes(), lambda: self.rotation_and_axes(angles)[0])
+        if not self.may_reach(start, float(np.sum(np.abs(following - angles))), 0.0):
             q_next[self.q_index] = following
             return
         for _ in range(KEEP_INSIDE_ROUNDS):
