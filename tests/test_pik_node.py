@@ -328,3 +328,40 @@ def test_bad_runtime_strategy_is_refused_and_the_old_one_kept(pik):
     assert not result.successful and "strategy must be one of" in result.reason
     assert fresh_status(probe).strategy == "progressive"
     assert_alive(node, probe)
+
+
+def test_a_step_is_stamped_after_the_inputs_it_reflects():
+    """A callback holding pik_node's lock (a stack or target being applied) delays the
+    step: the step's joint state and status are stamped once the lock is free, so that
+    nothing published reflects an input received after its stamp. In-process pik_node
+    (default robot), its loop not started; the lock held 50 ms by another thread."""
+    import threading
+
+    import rclpy
+    from pik_node.node import PikNode
+    from rclpy.time import Time
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = PikNode(context=context)
+        published = []
+        node.status_pub.publish = published.append
+        locked, released = threading.Event(), []
+
+        def hold():
+            with node._lock:
+                locked.set()
+                threading.Event().wait(0.05)
+                released.append(node.get_clock().now())
+
+        holder = threading.Thread(target=hold)
+        holder.start()
+        locked.wait(5.0)
+        node._tick()
+        holder.join()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert len(published) == 1
+    assert Time.from_msg(published[0].header.stamp) >= released[0]

@@ -290,18 +290,20 @@ class PikNode(Node):
                 next_tick += missed * self._period
 
     def _tick(self):
-        stamp = self.get_clock().now().to_msg()
         with self._lock:
+            # stamped once the inputs are frozen: what a step publishes reflects no input
+            # received after its stamp (a callback may hold the lock for a while)
+            stamp = self.get_clock().now().to_msg()
             result = self.solver.step(self.q)
-            self.q = result.q
+            self.q = q = result.q
             self.cycles += 1
             status = self._fill_status(stamp, result)
         joint_state = JointState(header=_header(stamp), name=self._joint_names,
-                                 position=self.q[self._joint_q_index].tolist())
+                                 position=q[self._joint_q_index].tolist())
         self.joint_state_pub.publish(joint_state)
         if self.robot.floating_base:
             base = PoseStamped(header=_header(stamp, "world"))
-            fill_pose_msg(base.pose, self.q[:7])
+            fill_pose_msg(base.pose, q[:7])
             self.base_pose_pub.publish(base)
         self.status_pub.publish(status)
 
