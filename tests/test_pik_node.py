@@ -334,7 +334,8 @@ def test_a_step_is_stamped_after_the_inputs_it_reflects():
     """A callback holding pik_node's lock (a stack or target being applied) delays the
     step: the step's joint state and status are stamped once the lock is free, so that
     nothing published reflects an input received after its stamp. In-process pik_node
-    (default robot), its loop not started; the lock held 50 ms by another thread."""
+    (default robot) in another DDS domain, its loop not started; the lock held 50 ms by
+    another thread."""
     import threading
 
     import rclpy
@@ -342,7 +343,7 @@ def test_a_step_is_stamped_after_the_inputs_it_reflects():
     from rclpy.time import Time
 
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)
     try:
         node = PikNode(context=context)
         published = []
