@@ -4,6 +4,8 @@ with a reason and changes nothing, the stack can be replaced and tasks toggled."
 import copy
 import math
 import os
+import threading
+import time
 
 import numpy as np
 import pinocchio as pin
@@ -11,9 +13,11 @@ import pytest
 from conftest import wait_until
 from geometry_msgs.msg import Pose
 from pik_node.conversions import se3_from_pose_msg
-from pik_node.node import fill_pose_msg
+from pik_node.node import PikNode, fill_pose_msg
 from stance_tools.processes import ProcessGroup
 from helpers.probe import PikProbe, point_target, pose_target, task_status
+import rclpy
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance_msgs.msg import TaskSpec
 from stance_msgs.srv import SetStack, SetTaskEnabled
@@ -336,12 +340,6 @@ def test_a_step_is_stamped_after_the_inputs_it_reflects():
     nothing published reflects an input received after its stamp. In-process pik_node
     (default robot) in another DDS domain, its loop not started; the lock held 50 ms by
     another thread."""
-    import threading
-
-    import rclpy
-    from pik_node.node import PikNode
-    from rclpy.time import Time
-
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)
     try:
@@ -353,7 +351,7 @@ def test_a_step_is_stamped_after_the_inputs_it_reflects():
         def hold():
             with node._lock:
                 locked.set()
-                threading.Event().wait(0.05)
+                time.sleep(0.05)
                 released.append(node.get_clock().now())
 
         holder = threading.Thread(target=hold)

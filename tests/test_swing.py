@@ -213,7 +213,8 @@ def test_variation_away_from_the_limit_or_outside_the_zone_is_untouched(name):
     domain = DOMAINS[name]
     s = point_inside_by(domain, 0.1)
     tangent, normal = tangent_and_normal(domain, s)
-    assert damp_swing(THICKNESS, SwingPoint(domain, s), s - 0.01 * normal + 0.01 * tangent, True)[0] is None
+    assert damp_swing(THICKNESS, SwingPoint(domain, s), s - 0.01 * normal + 0.01 * tangent,
+                      True)[0] is None
     deep = point_inside_by(domain, 0.3)
     assert damp_swing(THICKNESS, SwingPoint(domain, deep), deep + 0.01 * normal, True)[0] is None
 
@@ -222,7 +223,8 @@ def test_variation_away_from_the_limit_or_outside_the_zone_is_untouched(name):
 def test_clamping_only_does_not_damp_inside(name):
     domain = DOMAINS[name]
     s = point_inside_by(domain, 0.1)
-    assert damp_swing(THICKNESS, SwingPoint(domain, s), s + 0.01 * domain.normal_at(s), False)[0] is None
+    assert damp_swing(THICKNESS, SwingPoint(domain, s), s + 0.01 * domain.normal_at(s),
+                      False)[0] is None
 
 
 @pytest.mark.parametrize("name", DOMAINS)
