@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 from stance.pik import PIKSolver
 from stance.robot import Robot
 from stance.swing import (JointGroupLimit, LimitFileError, limit_file_path, load_limit_file,
-                          parse_limits, rotation_log, swing_twist)
+                          parse_limits, rotation_exp, rotation_from_swing_twist,
+                          rotation_log, swing_twist)
 
 SWING_TOLERANCE = math.radians(0.5)
 BOUND_TOLERANCE = 1e-9
@@ -106,6 +107,50 @@ def test_two_joints_of_a_group_head_for_the_closest_rotation(groups, seed, movab
                                                             error_and_gradient(start))
         assert error <= start_error, model.name
         assert gradient <= 0.1 * start_gradient, model.name
+
+
+@PROPERTY
+@given(seed=SEEDS)
+def test_a_group_decision_keeps_joints_fixed_earlier_and_the_swing_inside(talos, groups, seed):
+    """A shoulder group near its cone, moved outward with one joint fixed earlier in the
+    clamping loop: that joint keeps its variation, any other the group fixes gets h in
+    (0, 1], and the swing the fixed variations reach stays inside the cone."""
+    rng = np.random.default_rng(seed)
+    model = next(model for model in groups if model.name == "right_shoulder")
+    q = talos.initial_configuration()
+    nv = talos.model.nv
+    for _ in range(1000):   # a start inside the cone, within its damping zone
+        q[model.q_index] = rng.uniform(model.bounds.lower, model.bounds.upper)
+        s, theta = swing_twist(model.rotation(q))
+        if 0.0 < model.domain.signed_distance(s) < model.thickness:
+            break
+    assert 0.0 < model.domain.signed_distance(s) < model.thickness
+    s_outward = s + 0.05 * model.domain.normal_at(s)   # a move past the cone's boundary
+    angles = model.angles_for(rotation_from_swing_twist(s_outward, theta), q[model.q_index])
+    dq = np.zeros(nv)
+    dq[model.v_index] = angles - q[model.q_index]
+    fixed, fixed_dq, h = np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv)
+    held = model.v_index[0]
+    fixed[held], fixed_dq[held] = True, 0.25 * dq[held]
+    assert model.fix(q, dq, fixed, fixed_dq, h, True)
+    assert fixed_dq[held] == 0.25 * dq[held] and h[held] == 0.0
+    others = model.v_index[1:]
+    assert fixed[others].any()
+    assert np.all((h[others][fixed[others]] > 0.0) & (h[others][fixed[others]] <= 1.0))
+    reached = q[model.q_index] + np.where(fixed[model.v_index], fixed_dq[model.v_index],
+                                          dq[model.v_index])
+    s_reached, _ = swing_twist(model.rotation_and_axes(reached)[0])
+    assert model.domain.signed_distance(s_reached) >= -SWING_TOLERANCE
+
+
+@settings(max_examples=200, deadline=None, derandomize=True, database=None)
+@given(v=st.lists(st.one_of(st.floats(-4.0, 4.0), st.floats(-1e-4, 1e-4)), min_size=3,
+                  max_size=3))
+def test_compiled_rotation_exp_is_pinocchios_bit_for_bit(v):
+    """rotation_exp (the compiled swing / twist rule's) = pinocchio.exp3, the same bits,
+    past and below the Taylor threshold."""
+    v = np.asarray(v)
+    np.testing.assert_array_equal(rotation_exp(v), pin.exp3(v))
 
 
 @settings(max_examples=200, deadline=None, derandomize=True, database=None)

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from stance.limits import cubic_step
 from stance.models import MANNEQUIN_LIMIT_FILE, build_mannequin
 from stance.swing import (BallLimit, EllipticCone, LimitFileError, SphericalPolygon,
-                          SwingLimit, SwingPoint, damp_swing, load_limit_file, parse_limits,
+                          SwingLimit, damp_swing, load_limit_file, parse_limits,
                           rotation_from_swing_twist, swing_direction, swing_from_direction,
                           swing_rotation, swing_twist)
 
@@ -200,7 +200,7 @@ def test_only_the_orthogonal_component_is_damped_by_the_cubic(name, depth):
     assert domain.signed_distance(s) == pytest.approx(depth, abs=1e-6)
     tangent, normal = tangent_and_normal(domain, s)
     variation = 0.002 * normal + 0.004 * tangent
-    target, h = damp_swing(THICKNESS, SwingPoint(domain, s), s + variation, progressive=True)
+    target, h = damp_swing(domain, THICKNESS, s, s + variation, progressive=True)
     d = (THICKNESS - depth) / THICKNESS
     assert h == pytest.approx(cubic_step(d), abs=1e-6)
     moved = target - s
@@ -213,17 +213,17 @@ def test_variation_away_from_the_limit_or_outside_the_zone_is_untouched(name):
     domain = DOMAINS[name]
     s = point_inside_by(domain, 0.1)
     tangent, normal = tangent_and_normal(domain, s)
-    assert damp_swing(THICKNESS, SwingPoint(domain, s), s - 0.01 * normal + 0.01 * tangent,
+    assert damp_swing(domain, THICKNESS, s, s - 0.01 * normal + 0.01 * tangent,
                       True)[0] is None
     deep = point_inside_by(domain, 0.3)
-    assert damp_swing(THICKNESS, SwingPoint(domain, deep), deep + 0.01 * normal, True)[0] is None
+    assert damp_swing(domain, THICKNESS, deep, deep + 0.01 * normal, True)[0] is None
 
 
 @pytest.mark.parametrize("name", DOMAINS)
 def test_clamping_only_does_not_damp_inside(name):
     domain = DOMAINS[name]
     s = point_inside_by(domain, 0.1)
-    assert damp_swing(THICKNESS, SwingPoint(domain, s), s + 0.01 * domain.normal_at(s),
+    assert damp_swing(domain, THICKNESS, s, s + 0.01 * domain.normal_at(s),
                       False)[0] is None
 
 
@@ -235,7 +235,7 @@ def test_state_on_the_limit_heading_outside_slides_along_it(name, progressive):
     domain = DOMAINS[name]
     s = point_inside_by(domain, 0.0)
     tangent, normal = tangent_and_normal(domain, s)
-    target, h = damp_swing(THICKNESS, SwingPoint(domain, s), s + 0.05 * normal + 0.05 * tangent,
+    target, h = damp_swing(domain, THICKNESS, s, s + 0.05 * normal + 0.05 * tangent,
                            progressive)
     assert h == 1.0
     assert abs(domain.signed_distance(target)) < 1e-9
@@ -246,7 +246,7 @@ def test_state_on_the_limit_heading_outside_slides_along_it(name, progressive):
 def test_start_outside_moves_back_onto_the_limit(name):
     domain = DOMAINS[name]
     s = point_inside_by(domain, -0.2)
-    target, h = damp_swing(THICKNESS, SwingPoint(domain, s), s + 0.01 * domain.normal_at(s), True)
+    target, h = damp_swing(domain, THICKNESS, s, s + 0.01 * domain.normal_at(s), True)
     assert h == 1.0 and abs(domain.signed_distance(target)) < 1e-9
 
 

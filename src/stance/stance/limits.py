@@ -93,8 +93,17 @@ def apply_decision(decision: LimitDecision, fixed, fixed_dq, h) -> bool:
     return True
 
 
+def decision_by_fixing(model, q, dq, free, progressive: bool) -> LimitDecision:
+    """The decision of a model that fixes in place (model.fix; v_index: its velocity
+    DoFs), taken on scratch arrays: the free DoFs it fixes, their variations and h."""
+    fixed, fixed_dq, h = ~free, np.zeros(len(free)), np.zeros(len(free))
+    model.fix(q, dq, fixed, fixed_dq, h, progressive)
+    index = model.v_index[fixed[model.v_index] & free[model.v_index]]
+    return LimitDecision(index, fixed_dq[index], h[index])
+
+
 @numba.njit(cache=True)
-def _keep_inside(q, q_next, q_index, lower, upper):
+def keep_inside_bounds(q, q_next, q_index, lower, upper):
     """RevoluteLimits.keep_inside compiled: q_next[i] clipped (in place) to
     [min(lower, q[i]), max(upper, q[i])] for i in q_index."""
     for j in range(len(q_index)):
@@ -134,7 +143,7 @@ class RevoluteLimits:
     def keep_inside(self, q, q_next) -> None:
         """Project q_next (in place) into the limits without ever moving a joint further
         out than q: removes the negligible overshoot of variations the decision ignored."""
-        _keep_inside(q, q_next, self.q_index, self.lower, self.upper)
+        keep_inside_bounds(q, q_next, self.q_index, self.lower, self.upper)
 
     def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
         """Fix in place (fixed, fixed_dq, h: nv) the DoFs not fixed yet that dq must not
@@ -144,10 +153,7 @@ class RevoluteLimits:
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
-        fixed, fixed_dq, h = ~free, np.zeros(len(free)), np.zeros(len(free))
-        self.fix(q, dq, fixed, fixed_dq, h, progressive)
-        index = self.v_index[fixed[self.v_index] & free[self.v_index]]
-        return LimitDecision(index, fixed_dq[index], h[index])
+        return decision_by_fixing(self, q, dq, free, progressive)
 
 
 class Strategy:

@@ -40,8 +40,8 @@ import pinocchio as pin
 import yaml
 
 from .hierarchy import _damped_least_squares
-from .limits import (NEGLIGIBLE_VARIATION, LimitDecision, RevoluteLimits, apply_decision,
-                     cubic_step)
+from .limits import (NEGLIGIBLE_VARIATION, LimitDecision, RevoluteLimits, keep_inside_bounds,
+                     apply_decision, cubic_step, decision_by_fixing, fix_joints)
 
 OUTSIDE_TOLERANCE = 1e-9   # rad: a state this close outside a limit counts as on it
 Z_AXIS = np.array([0.0, 0.0, 1.0])
@@ -51,16 +51,58 @@ class LimitFileError(ValueError):
     """A limit file is malformed; the message names the offending joint and field."""
 
 
-# Swing / twist decomposition.
+# Swing / twist decomposition, compiled: a joint group's decision runs in one call.
 
-def swing_direction(s) -> np.ndarray:
+EXP3_TAYLOR_BELOW = np.finfo(float).eps ** 0.25   # Pinocchio's Taylor precision<3>
+EXP3_EPSILON_SQ = np.finfo(float).eps ** 2
+
+
+@numba.njit(cache=True)
+def rotation_exp(v):
+    """Rotation matrix of the rotation vector v (rad): pinocchio.exp3's Rodrigues formula in
+    its operation order (Pinocchio 4), so the same bits, in compiled code."""
+    t2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2] + EXP3_EPSILON_SQ
+    t = math.sqrt(t2)
+    cosine, sine = math.cos(t), math.sin(t)
+    if t > EXP3_TAYLOR_BELOW:
+        outer, skew = (1.0 - cosine) / t2, sine / t
+    else:
+        outer, skew, cosine = 0.5 - t2 / 24.0, 1.0 - t2 / 6.0, 1.0 - t2 / 2.0
+    rotation = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            rotation[i, j] = (outer * v[i]) * v[j]
+    rotation[0, 1] -= skew * v[2]
+    rotation[1, 0] += skew * v[2]
+    rotation[0, 2] += skew * v[1]
+    rotation[2, 0] -= skew * v[1]
+    rotation[1, 2] -= skew * v[0]
+    rotation[2, 1] += skew * v[0]
+    for i in range(3):
+        rotation[i, i] += cosine
+    return rotation
+
+
+@numba.njit(cache=True)
+def _product3(a, b):
+    """a @ b for 3x3 matrices without a BLAS call (its overhead dwarfs 27 products)."""
+    product = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            product[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return product
+
+
+@numba.njit(cache=True)
+def swing_direction(s):
     """Unit bone direction R_swing(s) z (joint frame) of swing vector s (rad)."""
     angle = math.hypot(s[0], s[1])
     scale = math.sin(angle) / angle if angle > 1e-12 else 1.0
     return np.array([scale * s[1], -scale * s[0], math.cos(angle)])
 
 
-def swing_from_direction(direction) -> np.ndarray:
+@numba.njit(cache=True)
+def swing_from_direction(direction):
     """Swing vector s (rad) of the shortest-arc rotation taking z to `direction` (unit)."""
     sine = math.hypot(direction[0], direction[1])
     angle = math.atan2(sine, direction[2])
@@ -69,7 +111,8 @@ def swing_from_direction(direction) -> np.ndarray:
     return angle / sine * np.array([-direction[1], direction[0]])
 
 
-def swing_direction_jacobian(s) -> np.ndarray:
+@numba.njit(cache=True)
+def swing_direction_jacobian(s):
     """d(swing_direction)/ds (3x2)."""
     angle = math.hypot(s[0], s[1])
     if angle < 1e-6:  # sinc(a) ~ 1 - a^2/6: (sinc)'/a ~ -1/3, sin(a)/a ~ 1
@@ -78,48 +121,64 @@ def swing_direction_jacobian(s) -> np.ndarray:
         sinc = math.sin(angle) / angle
         sinc_slope = (angle * math.cos(angle) - math.sin(angle)) / angle ** 3
         sin_over = sinc
-    sx, sy = s
+    sx, sy = s[0], s[1]
     return np.array([[sinc_slope * sx * sy, sinc + sinc_slope * sy * sy],
                      [-sinc - sinc_slope * sx * sx, -sinc_slope * sx * sy],
                      [-sin_over * sx, -sin_over * sy]])
 
 
-def swing_rotation(s) -> np.ndarray:
-    return pin.exp3(np.array([s[0], s[1], 0.0]))
+@numba.njit(cache=True)
+def swing_rotation(s):
+    return rotation_exp(np.array([s[0], s[1], 0.0]))
 
 
-def twist_rotation(theta: float) -> np.ndarray:
+@numba.njit(cache=True)
+def twist_rotation(theta):
     cosine, sine = math.cos(theta), math.sin(theta)
     return np.array([[cosine, -sine, 0.0], [sine, cosine, 0.0], [0.0, 0.0, 1.0]])
 
 
-def swing_twist(rotation) -> tuple[np.ndarray, float]:
+@numba.njit(cache=True)
+def swing_twist(rotation):
     """(s (rad, swing plane), theta (rad)) with rotation = R_swing(s) R_twist(theta about z)."""
     s = swing_from_direction(rotation[:, 2])
-    twist = swing_rotation(s).T @ rotation
-    return s, math.atan2(twist[1, 0], twist[0, 0])
+    swing = swing_rotation(s)   # theta from the first column of R_swing^T R
+    cosine = swing[0, 0] * rotation[0, 0] + swing[1, 0] * rotation[1, 0] \
+        + swing[2, 0] * rotation[2, 0]
+    sine = swing[0, 1] * rotation[0, 0] + swing[1, 1] * rotation[1, 0] \
+        + swing[2, 1] * rotation[2, 0]
+    return s, math.atan2(sine, cosine)
 
 
-def rotation_from_swing_twist(s, theta: float) -> np.ndarray:
-    return swing_rotation(s) @ twist_rotation(theta)
+@numba.njit(cache=True)
+def rotation_from_swing_twist(s, theta):
+    return _product3(swing_rotation(s), twist_rotation(theta))
 
 
 # Limit domains in the swing plane.
 
+CONE, POLYGON = 0, 1          # kinds of SwingDomain.geometry
+NO_ROWS = np.zeros((0, 3))
+
+
 class SwingDomain:
-    """Valid set of swing vectors s (rad). Subclasses give the signed distance to the limit
-    (inside positive, rad), its closest boundary point and outward normal."""
+    """Valid set of swing vectors s (rad): the signed distance to the limit (inside
+    positive, rad), its closest boundary point and outward normal. `geometry` is what the
+    compiled kernels see: (kind, cone semi-axes (2), polygon vertices, edge ends, arc axes,
+    inward normals (n x 3 each; none for a cone))."""
+
+    geometry: tuple
 
     def signed_distance(self, s) -> float:
-        raise NotImplementedError
+        return _domain_distance(self.geometry, np.asarray(s, dtype=float))
 
     def closest_boundary_point(self, s) -> np.ndarray:
-        raise NotImplementedError
+        return _domain_closest(self.geometry, np.asarray(s, dtype=float))
 
     def normal_at(self, s) -> np.ndarray:
         """Outward unit normal (swing plane) of the limit at the boundary point closest to s:
         the direction of steepest approach to the limit from s."""
-        raise NotImplementedError
+        return _domain_normal(self.geometry, np.asarray(s, dtype=float))
 
     def contains(self, s, tolerance: float = 0.0) -> bool:
         return self.signed_distance(s) >= -tolerance
@@ -175,19 +234,8 @@ class EllipticCone(SwingDomain):
         if not (0.0 < a < math.pi and 0.0 < b < math.pi):
             raise ValueError(f"cone semi-axes must lie in (0, pi) rad, got a={a}, b={b}")
         self.a, self.b = float(a), float(b)
-
-    def closest_boundary_point(self, s) -> np.ndarray:
-        return np.array(_ellipse_closest_point(self.a, self.b, float(s[0]), float(s[1])))
-
-    def signed_distance(self, s) -> float:
-        distance = float(np.linalg.norm(self.closest_boundary_point(s) - s))
-        inside = (s[0] / self.a) ** 2 + (s[1] / self.b) ** 2 <= 1.0
-        return distance if inside else -distance
-
-    def normal_at(self, s) -> np.ndarray:
-        point = self.closest_boundary_point(s)
-        normal = np.array([point[0] / self.a ** 2, point[1] / self.b ** 2])
-        return normal / np.linalg.norm(normal)
+        self.geometry = (CONE, np.array([self.a, self.b]), NO_ROWS, NO_ROWS, NO_ROWS,
+                         NO_ROWS)
 
 
 @numba.njit(cache=True)
@@ -198,8 +246,9 @@ def _cross(a, b):
 
 @numba.njit(cache=True)
 def _polygon_closest(direction, vertices, ends, arc_axes):
-    """SphericalPolygon._closest: per edge, the direction projected on its great circle if
-    it falls inside the arc, else the nearer end; the candidate with the largest cosine."""
+    """(closest boundary direction, index of its edge, at a vertex) of a spherical polygon
+    to a unit direction: per edge, the direction projected on its great circle if it falls
+    inside the arc, else the nearer end; the candidate with the largest cosine."""
     best = vertices[0].copy()
     best_cosine, best_edge, at_vertex = -2.0, 0, False
     for edge in range(len(vertices)):
@@ -218,6 +267,67 @@ def _polygon_closest(direction, vertices, ends, arc_axes):
         if cosine > best_cosine:
             best, best_cosine, best_edge, at_vertex = candidate.copy(), cosine, edge, vertex
     return best, best_edge, at_vertex
+
+
+@numba.njit(cache=True)
+def _inside_polygon(inward_normals, direction):
+    """Whether a direction lies on the inner side of every edge's great circle."""
+    for normal in inward_normals:
+        if normal[0] * direction[0] + normal[1] * direction[1] + normal[2] * direction[2] < 0.0:
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _domain_closest(geometry, s):
+    """SwingDomain.closest_boundary_point of the domain whose geometry is given."""
+    kind, axes, vertices, ends, arc_axes, _ = geometry
+    if kind == CONE:
+        return np.array(_ellipse_closest_point(axes[0], axes[1], s[0], s[1]))
+    return swing_from_direction(_polygon_closest(swing_direction(s), vertices, ends,
+                                                 arc_axes)[0])
+
+
+@numba.njit(cache=True)
+def _domain_distance(geometry, s):
+    """SwingDomain.signed_distance (rad, inside positive): Euclidean in the plane for a
+    cone, geodesic on the sphere for a polygon."""
+    kind, axes, vertices, ends, arc_axes, inward_normals = geometry
+    if kind == CONE:
+        closest = _domain_closest(geometry, s)
+        distance = math.hypot(closest[0] - s[0], closest[1] - s[1])
+        inside = (s[0] / axes[0]) ** 2 + (s[1] / axes[1]) ** 2 <= 1.0
+    else:
+        direction = swing_direction(s)
+        closest = _polygon_closest(direction, vertices, ends, arc_axes)[0]
+        across = _cross(direction, closest)
+        distance = math.atan2(math.sqrt(across @ across), direction @ closest)
+        inside = _inside_polygon(inward_normals, direction)
+    return distance if inside else -distance
+
+
+@numba.njit(cache=True)
+def _domain_normal(geometry, s):
+    """SwingDomain.normal_at: the outward unit normal (swing plane) at s's closest point."""
+    kind, axes, vertices, ends, arc_axes, inward_normals = geometry
+    if kind == CONE:
+        closest = _domain_closest(geometry, s)
+        normal = np.array([closest[0] / axes[0] ** 2, closest[1] / axes[1] ** 2])
+    else:
+        direction = swing_direction(s)
+        closest, edge, at_vertex = _polygon_closest(direction, vertices, ends, arc_axes)
+        toward = closest - (closest @ direction) * direction  # tangent at s to the limit
+        if math.sqrt(toward @ toward) > 1e-9:
+            outward = toward if _inside_polygon(inward_normals, direction) else -toward
+        elif at_vertex:  # on a vertex: between its two edges
+            outward = -(inward_normals[edge] + inward_normals[edge - 1])
+        else:
+            outward = -inward_normals[edge]
+        jacobian = swing_direction_jacobian(s)   # its transpose: the distance's gradient
+        normal = np.zeros(2)
+        for row in range(3):
+            normal += jacobian[row] * outward[row]
+    return normal / math.hypot(normal[0], normal[1])
 
 
 class SphericalPolygon(SwingDomain):
@@ -240,7 +350,7 @@ class SphericalPolygon(SwingDomain):
             raise ValueError("consecutive spherical polygon vertices must be distinct and "
                              "not antipodal")
         normals /= lengths[:, None]
-        self._arc_axes = normals.copy()  # start x end: orients each edge's arc
+        arc_axes = normals.copy()  # start x end: orients each edge's arc
         if np.sum(normals @ self.vertices.mean(axis=0)) < 0.0:
             normals = -normals  # clockwise vertices: make the normals point inward
         if np.any(self.vertices @ normals.T < -1e-9):
@@ -248,96 +358,122 @@ class SphericalPolygon(SwingDomain):
         if np.any(normals @ Z_AXIS <= 1e-9):
             raise ValueError("the rest direction z must lie strictly inside the polygon")
         self.inward_normals = normals
-        self._edge_ends = following
-
-    def _closest(self, direction):
-        """(closest boundary direction, index of its edge, at a vertex) for a unit direction."""
-        best, edge, at_vertex = _polygon_closest(np.asarray(direction, dtype=float),
-                                                 self.vertices, self._edge_ends,
-                                                 self._arc_axes)
-        return best, int(edge), bool(at_vertex)
+        self.geometry = (POLYGON, np.zeros(2), self.vertices, following, arc_axes, normals)
 
     def contains(self, s, tolerance: float = 0.0) -> bool:
-        return bool(np.all(self.inward_normals @ swing_direction(s) >= -math.sin(tolerance)))
-
-    def closest_boundary_point(self, s) -> np.ndarray:
-        return swing_from_direction(self._closest(swing_direction(s))[0])
-
-    def signed_distance(self, s) -> float:
-        direction = swing_direction(s)
-        closest = self._closest(direction)[0]
-        angle = math.atan2(np.linalg.norm(_cross(direction, closest)), direction @ closest)
-        inside = np.all(self.inward_normals @ direction >= 0.0)
-        return angle if inside else -angle
-
-    def normal_at(self, s) -> np.ndarray:
-        direction = swing_direction(s)
-        closest, edge, at_vertex = self._closest(direction)
-        toward = closest - (closest @ direction) * direction  # tangent at s toward the limit
-        if np.linalg.norm(toward) > 1e-9:
-            outward = toward if np.all(self.inward_normals @ direction >= 0.0) else -toward
-        elif at_vertex:  # on a vertex: between its two edges
-            outward = -(self.inward_normals[edge] + self.inward_normals[edge - 1])
-        else:
-            outward = -self.inward_normals[edge]
-        normal = swing_direction_jacobian(s).T @ outward  # gradient of the distance in s
-        return normal / np.linalg.norm(normal)
+        return bool(np.all(self.inward_normals @ swing_direction(np.asarray(s, dtype=float))
+                           >= -math.sin(tolerance)))
 
 
-class SwingPoint:
-    """A swing vector s (rad) with its signed distance to `domain`'s limit (rad) and, once
-    asked for, the limit's outward normal there: what the damping of a move from s needs,
-    computed once however many moves from s the clamping loop tries."""
-
-    def __init__(self, domain: SwingDomain, s):
-        self.domain, self.s = domain, s
-        self.distance = domain.signed_distance(s)
-        self._normal = None
-
-    @property
-    def normal(self) -> np.ndarray:
-        if self._normal is None:
-            self._normal = self.domain.normal_at(self.s)
-        return self._normal
-
-
-class JointRotation(NamedTuple):
-    """A joint rotation at one configuration: R (3x3), its swing point and twist (rad)."""
-    rotation: np.ndarray
-    swing: SwingPoint
-    twist: float
-
-
-def damp_swing(thickness: float, current: SwingPoint, s_next, progressive: bool):
-    """Altered next swing (rad) and h for a move current.s -> s_next (eq. 6-10 and the
-    second-stage clamp), or (None, 0) when the move is left alone. thickness: q_hat (rad)."""
-    domain, s = current.domain, current.s
-    distance_next = domain.signed_distance(s_next)
+@numba.njit(cache=True)
+def _damp_swing(geometry, thickness, s, distance, s_next, progressive):
+    """damp_swing for a swing s at signed distance `distance` (rad) from the limit of the
+    domain whose geometry is given: (altered, next swing (rad), h)."""
+    distance_next = _domain_distance(geometry, s_next)
     if distance_next < -OUTSIDE_TOLERANCE:  # eq. 7, then the second stage
-        return domain.closest_boundary_point(s_next), 1.0
+        return True, _domain_closest(geometry, s_next), 1.0
     if not progressive:
-        return None, 0.0
-    depth = (thickness - current.distance) / thickness                   # d_k, eq. 6
+        return False, s_next, 0.0
+    depth = (thickness - distance) / thickness                           # d_k, eq. 6
     depth_next = (thickness - distance_next) / thickness                 # d_{k+1}
     if not depth_next > depth > 0.0:
-        return None, 0.0
+        return False, s_next, 0.0
     h = cubic_step(depth)                                                # eq. 8
-    variation = np.asarray(s_next) - s
-    normal = current.normal
-    orthogonal = (variation @ normal) * normal
+    variation = s_next - s
+    normal = _domain_normal(geometry, s)
+    orthogonal = (variation[0] * normal[0] + variation[1] * normal[1]) * normal
     damped = s + (1.0 - h) * orthogonal + (variation - orthogonal)       # eq. 10
-    if domain.signed_distance(damped) < -OUTSIDE_TOLERANCE:              # second stage
-        damped = domain.closest_boundary_point(damped)
-    return damped, h
+    if _domain_distance(geometry, damped) < -OUTSIDE_TOLERANCE:          # second stage
+        damped = _domain_closest(geometry, damped)
+    return True, damped, h
 
 
-# Limit models: the swing / twist rule, on Pinocchio spherical joints and on groups of
-# revolute joints.
+def damp_swing(domain: SwingDomain, thickness: float, s, s_next, progressive: bool):
+    """Altered next swing (rad) and h for a move s -> s_next in `domain` (eq. 6-10 and the
+    second-stage clamp), or (None, 0) when the move is left alone. thickness: q_hat (rad)."""
+    s, s_next = np.asarray(s, dtype=float), np.asarray(s_next, dtype=float)
+    altered, target, h = _damp_swing(domain.geometry, float(thickness), s,
+                                     domain.signed_distance(s), s_next, progressive)
+    return (target, h) if altered else (None, 0.0)
+
+
+# The swing / twist rule (IV.B.3), compiled. A rule is (domain geometry, swing thickness
+# q_hat (rad), twist table): the twist's RevoluteLimits.table, no columns if it is free.
+
+FREE_TWIST = np.zeros((5, 0))
+TWIST_INDICES = np.zeros((2, 1), dtype=np.int64)   # the twist: coordinate 0 of its own
+
+
+@numba.njit(cache=True)
+def _may_reach(s, theta, distance, reach, zone, twist_table):
+    """Whether a joint rotation at swing s (rad) with twist theta (rad), `distance` (rad)
+    inside its swing limit, turned by at most `reach` rad, may bring the swing within
+    `zone` rad of the limit or the twist into its damping zone (zone > 0) or past a bound
+    (zone = 0). False is certain: the bone direction turns by at most reach, the swing
+    vector by at most reach g with g = a / sin a at the largest swing angle a reachable,
+    the twist by at most reach (1 + g)."""
+    widest = math.hypot(s[0], s[1]) + reach
+    if widest >= 0.9 * math.pi:
+        return True
+    stretch = widest / math.sin(widest) if widest > 1e-9 else 1.0
+    if distance - reach * stretch <= zone:
+        return True
+    if twist_table.shape[1] == 0:
+        return False
+    low, high = (twist_table[2, 0], twist_table[3, 0]) if zone > 0.0 else \
+        (twist_table[0, 0], twist_table[1, 0])
+    return min(theta - low, high - theta) - reach * (1.0 + stretch) <= 0.0
+
+
+@numba.njit(cache=True)
+def _twist_target(theta, theta_next, twist_table, progressive):
+    """(altered, next twist (rad), h) of a twist move theta -> theta_next by the revolute
+    rule (limits.fix_joints)."""
+    if twist_table.shape[1] == 0:
+        return False, theta_next, 0.0
+    variation = (theta_next - theta + math.pi) % (2.0 * math.pi) - math.pi
+    fixed, fixed_dq, h = np.zeros(1, dtype=np.bool_), np.zeros(1), np.zeros(1)
+    if fix_joints(np.array([theta]), np.array([variation]), TWIST_INDICES, twist_table,
+                  progressive, fixed, fixed_dq, h) == 0:
+        return False, theta_next, 0.0
+    return True, theta + fixed_dq[0], h[0]
+
+
+@numba.njit(cache=True)
+def _altered(rule, s, theta, distance, rotation_next, progressive):
+    """(altered, next rotation, swing h, twist h) for a move of a joint rotation at swing s
+    and twist theta (rad), `distance` inside its swing limit, to rotation_next."""
+    geometry, thickness, twist_table = rule
+    s_next, theta_next = swing_twist(rotation_next)
+    swing_altered, swing_target, swing_h = _damp_swing(geometry, thickness, s, distance,
+                                                       s_next, progressive)
+    twist_altered, twist_target, twist_h = _twist_target(theta, theta_next, twist_table,
+                                                         progressive)
+    target = rotation_from_swing_twist(swing_target, twist_target)
+    return swing_altered or twist_altered, target, swing_h, twist_h
+
+
+@numba.njit(cache=True)
+def _projected(rule, s, theta, distance, rotation_next):
+    """(changed, rotation_next projected into the limits without moving further out than
+    the joint rotation at swing s and twist theta, `distance` inside its swing limit)."""
+    geometry, _, twist_table = rule
+    s_next, theta_next = swing_twist(rotation_next)
+    changed = False
+    if _domain_distance(geometry, s_next) < min(0.0, distance):
+        s_next, changed = _domain_closest(geometry, s_next), True
+    if twist_table.shape[1]:
+        following = np.array([theta_next])
+        keep_inside_bounds(np.array([theta]), following, TWIST_INDICES[0], twist_table[0],
+                     twist_table[1])
+        changed = changed or following[0] != theta_next
+        theta_next = following[0]
+    return changed, rotation_from_swing_twist(s_next, theta_next)
+
 
 class SwingTwistRule:
     """What a ball-and-socket limit does to a joint rotation (IV.B.3): swing domain plus
     twist interval [min, max] (rad, revolute rule eq. 1-5), or a free twist (None).
-
     activation: damping thickness q_hat (rad) of the swing zone and of the twist zones
     (the latter capped like revolute joints)."""
 
@@ -346,7 +482,8 @@ class SwingTwistRule:
         self.thickness = float(activation)
         self.twist = None if twist is None else RevoluteLimits(
             [f"{name}_twist"], [0], [0], [twist[0]], [twist[1]], activation)
-        self._state_key, self._state = None, None   # current()'s cache
+        self.rule = (domain.geometry, self.thickness,
+                     FREE_TWIST if self.twist is None else self.twist.table)
 
     def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
         """The subclass' decide() written in place into the clamping loop's arrays (fixed,
@@ -355,82 +492,23 @@ class SwingTwistRule:
 
     def warm_up(self, q) -> None:
         """Compile the kernels a decision near the limits needs (PIKSolver.warm_up): the
-        domain's distance, closest point and normal at the joint's swing at q."""
-        s, _ = swing_twist(self.rotation(q))
-        self.domain.signed_distance(s)
+        rule's, at the joint's rotation at q."""
+        rotation = np.ascontiguousarray(self.rotation(q))
+        s, theta = swing_twist(rotation)
+        distance = self.domain.signed_distance(s)
         self.domain.normal_at(s)
-        self.domain.closest_boundary_point(s)
+        _may_reach(s, theta, distance, 0.0, self.thickness, self.rule[2])
+        _altered(self.rule, s, theta, distance, rotation, True)
+        _projected(self.rule, s, theta, distance, rotation)
 
-    def current(self, key: bytes, rotation_at) -> JointRotation:
-        """The joint's rotation at the configuration whose bytes are `key` (rotation_at():
-        that rotation), with its swing point and twist: computed once per configuration,
-        since the clamping loop asks about several moves from the same one."""
-        if self._state_key != key:
-            rotation = rotation_at()
-            s, theta = swing_twist(rotation)
-            self._state_key = key
-            self._state = JointRotation(rotation, SwingPoint(self.domain, s), theta)
-        return self._state
 
-    def may_reach(self, current: JointRotation, reach: float, zone: float) -> bool:
-        """Whether the joint rotation `current`, turned by at most `reach` rad, may bring
-        the swing within `zone` rad of its domain's boundary or the twist into its damping
-        zone (zone > 0) or past a bound (zone = 0). False is certain: the bone direction
-        turns by at most reach, the swing vector by at most reach g with g = a / sin a at
-        the largest swing angle a reachable, the twist by at most reach (1 + g)."""
-        s, theta, distance = current.swing.s, current.twist, current.swing.distance
-        widest = float(np.hypot(s[0], s[1])) + reach
-        if widest >= 0.9 * math.pi:
-            return True
-        stretch = widest / math.sin(widest) if widest > 1e-9 else 1.0
-        if distance - reach * stretch <= zone:
-            return True
-        if self.twist is None:
-            return False
-        twist = self.twist
-        low, high = (twist.lower_threshold[0], twist.upper_threshold[0]) if zone > 0.0 else \
-            (twist.lower[0], twist.upper[0])
-        return min(theta - low, high - theta) - reach * (1.0 + stretch) <= 0.0
-
-    def altered(self, current: JointRotation, rotation_next, progressive: bool) -> tuple:
-        """(altered next rotation or None when the move is left alone, swing h, twist h)
-        for a move of the joint rotation from `current` to `rotation_next`."""
-        s_next, theta_next = swing_twist(rotation_next)
-        swing_target, swing_h = damp_swing(self.thickness, current.swing, s_next,
-                                           progressive)
-        twist_target, twist_h = self._twist_target(current.twist, theta_next, progressive)
-        if swing_target is None and twist_target is None:
-            return None, 0.0, 0.0
-        target = rotation_from_swing_twist(
-            s_next if swing_target is None else swing_target,
-            theta_next if twist_target is None else twist_target)
-        return target, swing_h, twist_h
-
-    def _twist_target(self, theta, theta_next, progressive):
-        """Altered next twist (rad) and h by the revolute rule, or (None, 0)."""
-        if self.twist is None:
-            return None, 0.0
-        variation = (theta_next - theta + math.pi) % (2.0 * math.pi) - math.pi
-        decision = self.twist.decide(np.array([theta]), np.array([variation]),
-                                     np.ones(1, dtype=bool), progressive)
-        if not len(decision.index):
-            return None, 0.0
-        return theta + decision.dq[0], float(decision.h[0])
-
-    def projected(self, current: JointRotation, rotation_next):
-        """rotation_next projected into the limits without moving further out than the
-        joint rotation `current`, or None when it needs no projection."""
-        s_next, theta_next = swing_twist(rotation_next)
-        changed = False
-        allowed = min(0.0, current.swing.distance)
-        if self.domain.signed_distance(s_next) < allowed:
-            s_next, changed = self.domain.closest_boundary_point(s_next), True
-        if self.twist is not None:
-            twist, following = np.array([current.twist]), np.array([theta_next])
-            self.twist.keep_inside(twist, following)
-            changed = changed or following[0] != theta_next
-            theta_next = following[0]
-        return rotation_from_swing_twist(s_next, theta_next) if changed else None
+class JointRotation(NamedTuple):
+    """A joint rotation at one configuration: R (3x3), its swing s and twist theta (rad),
+    and the swing's signed distance to the limit (rad)."""
+    rotation: np.ndarray
+    s: np.ndarray
+    twist: float
+    distance: float
 
 
 class BallLimit(SwingTwistRule):
@@ -445,6 +523,7 @@ class BallLimit(SwingTwistRule):
         self.q_slice = slice(q_index, q_index + 4)
         self.v_index = np.arange(v_index, v_index + 3)
         self.dof_names = [f"{joint}_swing_x", f"{joint}_swing_y", f"{joint}_twist"]
+        self._state_key, self._state = None, None   # current()'s cache
 
     @classmethod
     def for_joint(cls, robot, joint: str, *args, **kwargs):
@@ -458,18 +537,31 @@ class BallLimit(SwingTwistRule):
         """Joint rotation R (joint frame relative to its placement) at configuration q."""
         return pin.Quaternion(np.asarray(q[self.q_slice])).normalized().toRotationMatrix()
 
+    def current(self, q) -> JointRotation:
+        """The joint rotation at q: computed once per configuration, since the clamping loop
+        asks about several moves from the same one."""
+        key = q[self.q_slice].tobytes()
+        if self._state_key != key:
+            rotation = self.rotation(q)
+            s, theta = swing_twist(rotation)
+            self._state_key = key
+            self._state = JointRotation(rotation, s, theta, self.domain.signed_distance(s))
+        return self._state
+
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
         velocity = dq[self.v_index]
         if (not np.all(free[self.v_index])
                 or np.linalg.norm(velocity) <= NEGLIGIBLE_VARIATION):
             return _nothing()
-        current = self.current(q[self.q_slice].tobytes(), lambda: self.rotation(q))
-        if not self.may_reach(current, float(np.linalg.norm(velocity)), self.thickness):
+        current = self.current(q)
+        if not _may_reach(current.s, current.twist, current.distance,
+                          float(np.linalg.norm(velocity)), self.thickness, self.rule[2]):
             return _nothing()
-        target, swing_h, twist_h = self.altered(
-            current, current.rotation @ pin.exp3(velocity), progressive)
-        if target is None:
+        altered, target, swing_h, twist_h = _altered(
+            self.rule, current.s, current.twist, current.distance,
+            current.rotation @ pin.exp3(velocity), progressive)
+        if not altered:
             return _nothing()
         fixed = pin.log3(current.rotation.T @ target)
         return LimitDecision(self.v_index.copy(), fixed,
@@ -478,13 +570,15 @@ class BallLimit(SwingTwistRule):
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's joint rotation (in place) into the limits without moving it
         further out than q: removes the negligible overshoot the decisions ignored."""
-        current = self.current(q[self.q_slice].tobytes(), lambda: self.rotation(q))
+        current = self.current(q)
         following = self.rotation(q_next)
         turn = float(np.linalg.norm(pin.log3(current.rotation.T @ following)))
-        if not self.may_reach(current, turn, 0.0):
+        if not _may_reach(current.s, current.twist, current.distance, turn, 0.0,
+                          self.rule[2]):
             return
-        rotation = self.projected(current, following)
-        if rotation is not None:
+        changed, rotation = _projected(self.rule, current.s, current.twist, current.distance,
+                                       following)
+        if changed:
             q_next[self.q_slice] = pin.Quaternion(rotation).coeffs()
 
 
@@ -522,16 +616,6 @@ def _group_rotation(placements, axis_index, angles):
             rotation[row, first], rotation[row, second] = (cosine * a + sine * b,
                                                            cosine * b - sine * a)
     return rotation, axes
-
-
-@numba.njit(cache=True)
-def _product3(a, b):
-    """a @ b for 3x3 matrices without a BLAS call (its overhead dwarfs 27 products)."""
-    product = np.zeros((3, 3))
-    for i in range(3):
-        for j in range(3):
-            product[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
-    return product
 
 
 @numba.njit(cache=True)
@@ -597,6 +681,78 @@ def rotation_log(rotation):
     return angle * axis
 
 
+@numba.njit(cache=True)
+def _group_fix(kinematics, rule, bounds, q, dq, progressive, fixed, fixed_dq, h):
+    """JointGroupLimit.fix in one compiled call. kinematics: (placements, axis indices, q
+    indices, v indices) of the group's joints; rule: the swing / twist rule's; bounds:
+    the joints' own RevoluteLimits (indices, table) over the group's coordinates."""
+    placements, axis_index, q_index, v_index = kinematics
+    geometry, thickness, twist_table = rule
+    count = len(q_index)
+    angles, variation = np.empty(count), np.empty(count)
+    movable = np.empty(count, dtype=np.bool_)
+    moving = 0.0
+    for j in range(count):
+        angles[j], variation[j], movable[j] = q[q_index[j]], dq[v_index[j]], not fixed[v_index[j]]
+        if movable[j]:
+            moving += variation[j] * variation[j]
+    if math.sqrt(moving) <= NEGLIGIBLE_VARIATION:
+        return False
+    group_h, altered = np.zeros(count), np.zeros(count, dtype=np.bool_)
+    rotation = _group_rotation(placements, axis_index, angles)[0]
+    s, theta = swing_twist(rotation)
+    distance = _domain_distance(geometry, s)
+    if _may_reach(s, theta, distance, np.sum(np.abs(variation)), thickness, twist_table):
+        changed, target, swing_h, twist_h = _altered(
+            rule, s, theta, distance,
+            _group_rotation(placements, axis_index, angles + variation)[0], progressive)
+        if changed:   # the joints still free turned to the altered rotation, and fixed
+            reached = _group_angles(placements, axis_index, target, angles,
+                                    np.flatnonzero(movable))
+            for j in range(count):
+                if movable[j]:
+                    variation[j] = reached[j] - angles[j]
+                    group_h[j], altered[j] = max(swing_h, twist_h), True
+    own, own_dq, own_h = ~movable, np.zeros(count), np.zeros(count)   # their own bounds
+    if fix_joints(angles, variation, bounds[0], bounds[1], progressive, own, own_dq,
+                  own_h) > 0:
+        for j in range(count):
+            if own[j] and movable[j]:
+                variation[j] = own_dq[j]
+                group_h[j], altered[j] = max(group_h[j], own_h[j]), True
+    for j in range(count):
+        if altered[j]:
+            v = v_index[j]
+            fixed[v], fixed_dq[v], h[v] = True, variation[j], group_h[j]
+    return np.any(altered)
+
+
+@numba.njit(cache=True)
+def _group_keep_inside(kinematics, rule, bounds, q, q_next):
+    """JointGroupLimit.keep_inside in one compiled call (arguments: _group_fix's)."""
+    placements, axis_index, q_index, _ = kinematics
+    twist_table = rule[2]
+    local, lower, upper = bounds[0][0], bounds[1][0], bounds[1][1]
+    count = len(q_index)
+    angles, following = np.empty(count), np.empty(count)
+    for j in range(count):
+        angles[j], following[j] = q[q_index[j]], q_next[q_index[j]]
+    keep_inside_bounds(angles, following, local, lower, upper)
+    s, theta = swing_twist(_group_rotation(placements, axis_index, angles)[0])
+    distance = _domain_distance(rule[0], s)
+    if _may_reach(s, theta, distance, np.sum(np.abs(following - angles)), 0.0, twist_table):
+        for _ in range(KEEP_INSIDE_ROUNDS):
+            changed, rotation = _projected(
+                rule, s, theta, distance,
+                _group_rotation(placements, axis_index, following)[0])
+            if not changed:
+                break
+            following = _group_angles(placements, axis_index, rotation, following, local)
+            keep_inside_bounds(angles, following, local, lower, upper)
+    for j in range(count):
+        q_next[q_index[j]] = following[j]
+
+
 class JointGroupLimit(SwingTwistRule):
     """A chain of 2-3 revolute joints limited as one swing or ball-and-socket joint (e.g.
     Talos' hip: yaw, roll, pitch). The group rotation R is the product of the joints'
@@ -611,7 +767,8 @@ class JointGroupLimit(SwingTwistRule):
     the joints still free in the clamping loop by Gauss-Newton from q (exact for three
     independent axes; the closest rotation they reach otherwise) and those joints are
     fixed; otherwise only the joints their bounds alter are. h per joint: the larger of the
-    group's and the joint's own."""
+    group's and the joint's own. Decisions and projections run compiled (_group_fix,
+    _group_keep_inside)."""
 
     def __init__(self, name: str, robot, joints, domain: SwingDomain, twist=None,
                  activation: float = 0.2):
@@ -634,15 +791,21 @@ class JointGroupLimit(SwingTwistRule):
         self.axis_index = np.array(axes, dtype=np.int64)  # 0, 1, 2: x, y, z
         self.placements = np.array([np.eye(3)] + [model.jointPlacements[i].rotation
                                                   for i in ids[1:]])
-        self.q_index = np.array([model.joints[i].idx_q for i in ids])
-        self.v_index = np.array([model.joints[i].idx_v for i in ids])
+        self.q_index = np.array([model.joints[i].idx_q for i in ids], dtype=np.int64)
+        self.v_index = np.array([model.joints[i].idx_v for i in ids], dtype=np.int64)
         self.dof_names = list(joints)
         bounds = (model.lowerPositionLimit[self.q_index], model.upperPositionLimit[self.q_index])
         local = np.arange(len(ids))
         self.bounds = RevoluteLimits(joints, local, local, *bounds, activation)
+        self._kernel_arguments = ((self.placements, self.axis_index, self.q_index,
+                                   self.v_index), self.rule,
+                                  (self.bounds.indices, self.bounds.table))
 
     def warm_up(self, q) -> None:
         super().warm_up(q)
+        nv = int(self.v_index.max()) + 1
+        self.fix(q, np.zeros(nv), np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv), True)
+        self.keep_inside(q, q.copy())
         self.angles_for(self.rotation(q), q[self.q_index])
 
     def rotation(self, q) -> np.ndarray:
@@ -664,53 +827,22 @@ class JointGroupLimit(SwingTwistRule):
         return _group_angles(self.placements, self.axis_index, np.asarray(target, dtype=float),
                              start, np.flatnonzero(movable))
 
+    def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
+        """Fix in place (fixed, fixed_dq, h: nv) the group's joints not fixed yet that the
+        swing / twist rule or their own bounds alter; True if any. q: configuration (nq),
+        dq: candidate variation (nv). Joints fixed earlier keep their variation."""
+        return bool(_group_fix(*self._kernel_arguments, q, dq, progressive, fixed, fixed_dq,
+                               h))
+
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
-        """q: configuration (nq), dq: candidate variation (nv), free: bool (nv). Joints
-        fixed earlier in the clamping loop keep their variation; the others are fixed
-        where the swing / twist rule or their own bounds alter them."""
-        angles, variation = q[self.q_index], dq[self.v_index].copy()
-        movable = free[self.v_index]
-        moving = variation[movable]
-        if not len(moving) or math.sqrt(moving @ moving) <= NEGLIGIBLE_VARIATION:
-            return _nothing()
-        h, altered = np.zeros(len(angles)), np.zeros(len(angles), dtype=bool)
-        target = None
-        current = self.current(angles.tobytes(), lambda: self.rotation_and_axes(angles)[0])
-        if self.may_reach(current, float(np.abs(variation).sum()), self.thickness):
-            target, swing_h, twist_h = self.altered(
-                current, self.rotation_and_axes(angles + variation)[0], progressive)
-        if target is not None:
-            reached = self.angles_for(target, angles, movable)
-            variation[movable] = reached[movable] - angles[movable]
-            h[movable], altered[movable] = max(swing_h, twist_h), True
-        own, own_dq, own_h = ~movable, np.zeros(len(angles)), np.zeros(len(angles))
-        if self.bounds.fix(angles, variation, own, own_dq, own_h, progressive):
-            own &= movable
-            variation[own] = own_dq[own]
-            h[own] = np.maximum(h[own], own_h[own])
-            altered |= own
-        fixed = altered.nonzero()[0]
-        if not len(fixed):
-            return _nothing()
-        return LimitDecision(self.v_index[fixed], variation[fixed], h[fixed])
+        """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
+        return decision_by_fixing(self, q, dq, free, progressive)
 
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's group rotation, then its joints (in place), into the limits
         without moving either further out than q (alternately, a few rounds: the bounds
         have the last word)."""
-        angles, following = q[self.q_index], q_next[self.q_index].copy()
-        self.bounds.keep_inside(angles, following)
-        start = self.current(angles.tobytes(), lambda: self.rotation_and_axes(angles)[0])
-        if not self.may_reach(start, float(np.sum(np.abs(following - angles))), 0.0):
-            q_next[self.q_index] = following
-            return
-        for _ in range(KEEP_INSIDE_ROUNDS):
-            rotation = self.projected(start, self.rotation_and_axes(following)[0])
-            if rotation is None:
-                break
-            following = self.angles_for(rotation, following)
-            self.bounds.keep_inside(angles, following)
-        q_next[self.q_index] = following
+        _group_keep_inside(*self._kernel_arguments, q, q_next)
 
 
 def _nothing() -> LimitDecision:
