@@ -19,6 +19,7 @@ from stance.limits import RevoluteLimits, cubic_step, make_strategy
 from stance.pik import PIKSolver, default_stack_specs
 from stance.robot import Robot, RobotModelError
 from stance.stack import TaskSpec
+from stance.swing import load_limit_file
 
 LOWER, UPPER, ACTIVATION = -1.0, 1.0, 0.2
 LIMIT_TOLERANCE = 1e-9
@@ -200,18 +201,21 @@ def test_same_input_gives_bitwise_identical_output(talos):
 @pytest.mark.parametrize("strategy", LIMITING_STRATEGIES)
 @PROPERTY
 @given(seed=SEEDS, reachable=st.booleans(), dt=st.sampled_from([None, 0.002]),
-       locked=st.sampled_from([(), ("torso_2_joint", "arm_right_4_joint")]))
+       locked=st.sampled_from([(), ("torso_2_joint", "arm_right_4_joint")]),
+       groups=st.booleans())
 def test_the_compiled_clamping_loop_gives_the_python_loops_bits(talos, hierarchy, strategy,
-                                                                seed, reachable, dt, locked):
-    """PIKSolver runs the clamping loop in one compiled call when it can (1-DoF limits
-    only; damped least squares, or the QP hierarchy until a solution's levels leave its
-    bounds, the general loop going on from there): every step gives the same bits as the
-    general loop."""
+                                                                seed, reachable, dt, locked,
+                                                                groups):
+    """PIKSolver runs the clamping loop in one compiled call when it can (1-DoF limits,
+    with or without Talos' joint groups; damped least squares, or the QP hierarchy until a
+    solution's levels leave its bounds, the general loop going on from there): every step
+    gives the same bits as the general loop."""
     start = random_start(talos, np.random.default_rng(seed))
     solvers = []
     for one_call in (True, False):
         solver = PIKSolver(talos, strategy=strategy, dt=dt, locked_joints=locked,
-                           hierarchy=hierarchy)
+                           hierarchy=hierarchy,
+                           limit_models=load_limit_file("talos", talos) if groups else ())
         assert solver._one_call_loop
         solver._one_call_loop = one_call
         solver.set_stack(hands_stack(), start)

@@ -33,6 +33,7 @@ from .limits import RevoluteLimits, fix_joints, make_strategy
 from .qp_hierarchy import QPHierarchy, cascade_compiled, empty_cascade_state
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
+from .swing import NO_GROUP, JointGroupLimit, group_fix
 from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
                     step_cap_groups)
 
@@ -131,10 +132,13 @@ class PIKSolver:
         self._layout = self._make_layout()
         self._uses_bounds = getattr(self.hierarchy, "uses_bounds", False)
         # the clamping loop in one compiled call: damped least squares (QPHierarchy: while
-        # its unconstrained solves stay within the bounds), 1-DoF limits only
+        # its unconstrained solves stay within the bounds), 1-DoF limits and joint groups
         self._unconstrained = getattr(self.hierarchy, "unconstrained", self.hierarchy)
         self._one_call_loop = (isinstance(self._unconstrained, DampedHierarchy)
-                               and self.limit_models == [self.limits])
+                               and all(isinstance(model, JointGroupLimit)
+                                       for model in limit_models))
+        self._groups = tuple(model.kernel_arguments for model in limit_models
+                             if isinstance(model, JointGroupLimit)) or (NO_GROUP,)
 
     @property
     def strategy_name(self) -> str:
@@ -245,7 +249,8 @@ class PIKSolver:
 
     def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h,
                            bounds=None):
-        """_clamping in one compiled call, when the 1-DoF joints are the only limit models
+        """_clamping in one compiled call, when the 1-DoF joints and joint groups are the
+        only limit models
         and the hierarchy is DampedHierarchy, or QPHierarchy (bounds: its (lower, upper)),
         whose cascades it runs too as long as their hot starts hold: the same kernels in
         the same order, so the same bits, without the Python around each solution and
@@ -264,7 +269,7 @@ class PIKSolver:
             if cascades else _NO_CASCADE_STATE
         (dq, level_steps, residuals, iterations, finished, cascaded, solved_fixed,
          solved_values, level_bases, level_ranks, level_starts) = _clamping_loop(
-            jacobian, target, offsets, q, limits.indices, limits.table,
+            jacobian, target, offsets, q, limits.indices, limits.table, self._groups,
             self.strategy.progressive, fixed, fixed_dq, h, unconstrained.damping,
             unconstrained.rank_tolerance, lower, upper, cascades, cascade_state)
         if finished and cascaded:
@@ -391,12 +396,13 @@ class PIKSolver:
 
 
 @numba.njit(cache=True)
-def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, progressive,
-                   fixed, fixed_dq, h, damping, rank_tolerance, lower, upper, cascades,
-                   cascade_state):
-    """PIKSolver._clamping for DampedHierarchy and RevoluteLimits (the indices and table
-    of limits.fix_joints) in one call: each solution restarts from the previous one's
-    levels (hierarchy.solve_compiled); fixed, fixed_dq and h (nv) are filled in place.
+def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, groups,
+                   progressive, fixed, fixed_dq, h, damping, rank_tolerance, lower, upper,
+                   cascades, cascade_state):
+    """PIKSolver._clamping for DampedHierarchy, RevoluteLimits (the indices and table
+    of limits.fix_joints) and joint groups (swing.group_fix's arguments, or NO_GROUP) in
+    one call: each solution restarts from the previous one's levels
+    (hierarchy.solve_compiled); fixed, fixed_dq and h (nv) are filled in place.
     lower, upper: QPHierarchy's bounds on dq (nv each; empty: none). A solution whose
     levels leave them (first_level_out_of_bounds), or that starts outside them, is
     QPHierarchy's cascade (qp_hierarchy.cascade_compiled) when `cascades`, with
@@ -450,13 +456,24 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, pro
             return (dq, level_steps, residuals, solutions, False, cascaded, now_fixed,
                     values, level_bases, level_ranks, level_starts)
         solutions += 1
-        if fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
-                      h) == 0:
+        if not _fix_limits(q, dq, limit_indices, limit_table, groups, progressive, fixed,
+                           fixed_dq, h):
             return (dq, level_steps, cascade_residuals if cascaded else residuals, solutions,
                     True, cascaded, now_fixed, values, level_bases, level_ranks,
                     level_starts)
         solved_fixed, solved_values = (no_fixed, no_values) if cascaded else \
             (now_fixed, values)
+
+
+@numba.njit(cache=True)
+def _fix_limits(q, dq, limit_indices, limit_table, groups, progressive, fixed, fixed_dq, h):
+    """The limit pass of PIKSolver._clamping, compiled: the 1-DoF joints' then each joint
+    group's decision written in place (fixed, fixed_dq, h: nv); True if any DoF is fixed."""
+    changed = fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
+                         h) > 0
+    for group in groups:
+        changed |= group_fix(group, q, dq, progressive, fixed, fixed_dq, h)
+    return changed
 
 
 @numba.njit(cache=True)

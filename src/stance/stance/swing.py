@@ -682,10 +682,12 @@ def rotation_log(rotation):
 
 
 @numba.njit(cache=True)
-def _group_fix(kinematics, rule, bounds, q, dq, progressive, fixed, fixed_dq, h):
-    """JointGroupLimit.fix in one compiled call. kinematics: (placements, axis indices, q
-    indices, v indices) of the group's joints; rule: the swing / twist rule's; bounds:
-    the joints' own RevoluteLimits (indices, table) over the group's coordinates."""
+def group_fix(group, q, dq, progressive, fixed, fixed_dq, h):
+    """JointGroupLimit.fix in one compiled call. group: JointGroupLimit.kernel_arguments,
+    (kinematics, rule, bounds): the (placements, axis indices, q indices, v indices) of
+    its joints, its swing / twist rule, and the joints' own RevoluteLimits (indices,
+    table) over the group's coordinates."""
+    kinematics, rule, bounds = group
     placements, axis_index, q_index, v_index = kinematics
     geometry, thickness, twist_table = rule
     count = len(q_index)
@@ -728,8 +730,9 @@ def _group_fix(kinematics, rule, bounds, q, dq, progressive, fixed, fixed_dq, h)
 
 
 @numba.njit(cache=True)
-def _group_keep_inside(kinematics, rule, bounds, q, q_next):
-    """JointGroupLimit.keep_inside in one compiled call (arguments: _group_fix's)."""
+def _group_keep_inside(group, q, q_next):
+    """JointGroupLimit.keep_inside in one compiled call (group: group_fix's)."""
+    kinematics, rule, bounds = group
     placements, axis_index, q_index, _ = kinematics
     twist_table = rule[2]
     local, lower, upper = bounds[0][0], bounds[1][0], bounds[1][1]
@@ -767,7 +770,7 @@ class JointGroupLimit(SwingTwistRule):
     the joints still free in the clamping loop by Gauss-Newton from q (exact for three
     independent axes; the closest rotation they reach otherwise) and those joints are
     fixed; otherwise only the joints their bounds alter are. h per joint: the larger of the
-    group's and the joint's own. Decisions and projections run compiled (_group_fix,
+    group's and the joint's own. Decisions and projections run compiled (group_fix,
     _group_keep_inside)."""
 
     def __init__(self, name: str, robot, joints, domain: SwingDomain, twist=None,
@@ -797,9 +800,9 @@ class JointGroupLimit(SwingTwistRule):
         bounds = (model.lowerPositionLimit[self.q_index], model.upperPositionLimit[self.q_index])
         local = np.arange(len(ids))
         self.bounds = RevoluteLimits(joints, local, local, *bounds, activation)
-        self._kernel_arguments = ((self.placements, self.axis_index, self.q_index,
-                                   self.v_index), self.rule,
-                                  (self.bounds.indices, self.bounds.table))
+        self.kernel_arguments = ((self.placements, self.axis_index, self.q_index,
+                                  self.v_index), self.rule,
+                                 (self.bounds.indices, self.bounds.table))
 
     def warm_up(self, q) -> None:
         super().warm_up(q)
@@ -831,8 +834,7 @@ class JointGroupLimit(SwingTwistRule):
         """Fix in place (fixed, fixed_dq, h: nv) the group's joints not fixed yet that the
         swing / twist rule or their own bounds alter; True if any. q: configuration (nq),
         dq: candidate variation (nv). Joints fixed earlier keep their variation."""
-        return bool(_group_fix(*self._kernel_arguments, q, dq, progressive, fixed, fixed_dq,
-                               h))
+        return bool(group_fix(self.kernel_arguments, q, dq, progressive, fixed, fixed_dq, h))
 
     def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
         """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
@@ -842,7 +844,14 @@ class JointGroupLimit(SwingTwistRule):
         """Project q_next's group rotation, then its joints (in place), into the limits
         without moving either further out than q (alternately, a few rounds: the bounds
         have the last word)."""
-        _group_keep_inside(*self._kernel_arguments, q, q_next)
+        _group_keep_inside(self.kernel_arguments, q, q_next)
+
+
+# group_fix's arguments for a group of no joints, which fixes nothing: the compiled
+# clamping loop's stand-in for a robot without groups (numba cannot loop over no groups)
+NO_GROUP = ((np.zeros((0, 3, 3)), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+             np.zeros(0, dtype=np.int64)), (EllipticCone(1.0, 1.0).geometry, 1.0, FREE_TWIST),
+            (np.zeros((2, 0), dtype=np.int64), np.zeros((5, 0))))
 
 
 def _nothing() -> LimitDecision:
