@@ -475,7 +475,8 @@ def _cascade_levels(jacobian, target, offsets, level, dq, basis, bounded, lower,
                                        active_sides[level], known_sides[level], enforced,
                                        damping)
             if status == NO_KKT_POINT:
-                if not len(given_step):
+                if not len(given_step):   # the caller's ProxSuite keeps a new set: the
+                    known_sides[level] = False   # failed one is not polished again first
                     return level, basis, projected, residual
                 step = given_step
                 enforced[given_dofs] = True
