@@ -33,13 +33,14 @@ bounds as equalities exactly (nullspace method on a pivoted QR of the active row
 as its reflections, the damped least squares in their nullspace) and keeps the result
 when it is a KKT point: no bound violated, multipliers of the right sign (by NNLS at a
 degenerate vertex, where more bounds are active than y has variables).
-Otherwise it corrects the set (the most violated bound joins, replacing by Goldfarb and
-Idnani's ratio rule the one it makes redundant at a vertex; the worst wrong-sign one
-leaves) a bounded number of times. The KKT point is unique (the objective is strictly
-convex), so the result does not depend on where the polish started, to within the
-multiplier tolerance (MULTIPLIER_SLACK); to the bit, a certified step is solved once more
-on every bound it is on (at a degenerate vertex several active sets certify it, and each
-gives the point to rounding).
+Otherwise it corrects the set by Goldfarb and Idnani's dual method (the wrong-sign
+bounds leave until the set is dual feasible, then the most violated bound joins by
+partial steps that keep every multiplier's sign, a dependent one replacing the bound
+their ratio rule names) a bounded number of times. The KKT point is unique (the
+objective is strictly convex), so the result does not depend on where the polish
+started, to within the multiplier tolerance (MULTIPLIER_SLACK); to the bit, a certified
+step is solved once more on every bound it is on (at a degenerate vertex several active
+sets certify it, and each gives the point to rounding).
 
 Where the hot start fails (or there is none) a persistent ProxSuite dense QP (one per
 level and size) is updated and warm-started from its previous result, cold started when
@@ -564,60 +565,115 @@ def _remember(active_side, dofs, active, upper_side):
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _polish(projected, residual, damping, rows, low, high, active, upper_side, slack):
-    """Exact solution of the level's QP on an active set of bounds: (y, active row mask,
+    """Exact solution of the level's QP from an active set of bounds: (y, active row mask,
     upper-side mask, status), status CERTIFIED when the KKT conditions hold (no bound
-    violated, multipliers of the right sign within `slack`, by NNLS on a degenerate vertex),
-    else NO_KKT_POINT. The set starts from `active` / `upper_side` and is corrected a few
-    times: the most violated bound joins it (replacing the one _leaving_bound names when
-    its row depends on the active ones), the bound with the worst wrong-sign multiplier
-    leaves it. Each try minimizes in the nullspace of the active rows (_on_active_rows)."""
+    violated, multipliers of the right sign within `slack`, by NNLS on a degenerate
+    vertex), else NO_KKT_POINT. Goldfarb and Idnani's dual method, started from `active`
+    / `upper_side`: the bounds whose multipliers have the wrong sign (or that dependent
+    active rows make miss their value) leave, one at a time, until the set is dual
+    feasible; then the most violated bound joins, by partial steps along which every
+    multiplier keeps its sign (a bound whose multiplier reaches zero first leaves; where
+    the joining row depends on the active ones, the bound _leaving_bound names). The
+    objective rises at every step, so no set repeats (swapping the most violated bound
+    and the worst multiplier in turn cycled: 9 in 10 hot starts failed on Talos' hands
+    reaching out, some from the very optimal set). Each solve minimizes in the nullspace
+    of its rows, in index order (_on_active_rows), at most POLISH_ROUNDS of them."""
     active, upper_side = active.copy(), upper_side.copy()
-    step = np.zeros(projected.shape[1])
-    joined = -1                     # the bound that joined last
-    for _ in range(POLISH_ROUNDS):
+    signed = np.zeros(len(low))     # multipliers, positive when right (active rows' only)
+    step, led, solves = np.zeros(projected.shape[1]), False, 0
+    while True:                     # a dual feasible start: wrong-sign bounds leave
+        if solves == POLISH_ROUNDS:
+            return step, active, upper_side, NO_KKT_POINT
+        solves += 1
         index = np.flatnonzero(active)
         value = np.where(upper_side[index], high[index], low[index])
         active_rows = np.ascontiguousarray(rows[index])
-        # where the active rows are dependent, the bound that just joined pivots first:
-        # the rows it conflicts with are then the dependent ones, which miss their value
-        # and leave (it replaces them)
-        leading = np.searchsorted(index, joined) if joined >= 0 and active[joined] else -1
-        step, multiplier, factorization, led = _on_active_rows(projected, residual, damping,
-                                                               active_rows, value, leading)
-        rank = factorization[4]
-        reach = rows @ step
-        missed = np.abs(reach[index] - value) > FEASIBILITY_SLACK
+        step, multiplier, factorization, _ = _on_active_rows(projected, residual, damping,
+                                                             active_rows, value, -1)
+        missed = np.abs(active_rows @ step - value) > FEASIBILITY_SLACK
         if np.any(missed):          # dependent active rows that disagree: not a vertex
             active[index[missed]] = False
             continue
         side = np.where(upper_side[index], 1.0, -1.0)
-        excess = np.maximum(reach - high, low - reach)
-        worst = np.argmax(excess)
-        if excess[worst] > FEASIBILITY_SLACK:   # the most violated bound joins the set
-            if active[worst]:
-                return step, active, upper_side, NO_KKT_POINT  # active rows in conflict
-            joining_upper = reach[worst] > high[worst]
-            leaving = _leaving_bound(factorization,
-                                     rows[worst] if joining_upper else -rows[worst],
-                                     multiplier, side)
-            if leaving >= 0:
-                active[index[leaving]] = False
-            active[worst] = True
-            upper_side[worst] = joining_upper
-            joined = worst
+        signed[:] = 0.0
+        signed[index] = multiplier * side
+        if len(index) == 0 or np.min(signed[index]) >= -slack:
+            break
+        rank = factorization[4]
+        if solves == 1 and rank < len(index) and _within_bounds(
+                rows @ step, low, high) and _nonnegative_residual(
+                    np.ascontiguousarray(active_rows.T * side),
+                    _descent(projected, residual, damping, step), slack) <= slack:
+            return _on_tight_rows(projected, residual, damping, rows, low, high,
+                                  rows @ step, step, active, upper_side, False)
+        if rank < len(index):       # dependent rows that agree leave: y stays, and the
+            active[index[factorization[3][rank:]]] = False   # set is independent
             continue
-        signed = multiplier * side
-        certified = np.all(signed >= -slack)
-        if not certified and rank < len(index):  # dependent rows: other multipliers may
-            outward = np.ascontiguousarray(active_rows.T * side)  # fit the signs
-            certified = _nonnegative_residual(outward, _descent(projected, residual,
-                                                                damping, step),
-                                              slack) <= slack
-        if certified:
+        active[index[np.argmin(signed[index])]] = False
+    while True:                     # the most violated bound joins, until none is
+        reach = rows @ step
+        excess = np.maximum(reach - high, low - reach)
+        joining = np.argmax(excess)
+        if excess[joining] <= FEASIBILITY_SLACK:
             return _on_tight_rows(projected, residual, damping, rows, low, high, reach,
                                   step, active, upper_side, led)
-        active[index[np.argmin(signed)]] = False
-    return step, active, upper_side, NO_KKT_POINT
+        if active[joining]:
+            return step, active, upper_side, NO_KKT_POINT  # active rows in conflict
+        upper_side[joining] = reach[joining] > high[joining]
+        normal = (1.0 if upper_side[joining] else -1.0) * rows[joining]   # outward
+        while True:                 # steps toward the joining bound
+            if solves == POLISH_ROUNDS:
+                return step, active, upper_side, NO_KKT_POINT
+            solves += 1
+            index = np.flatnonzero(active)
+            active[joining] = True  # solved with it, in index order
+            members = np.flatnonzero(active)
+            active[joining] = False
+            position = np.searchsorted(members, joining)
+            value = np.where(upper_side[members], high[members], low[members])
+            target, multiplier, _, target_led = _on_active_rows(
+                projected, residual, damping, np.ascontiguousarray(rows[members]), value,
+                position)
+            others = members != joining
+            side = np.where(upper_side[index], 1.0, -1.0)
+            if target_led:          # the joining row depends on the (independent) active
+                #                     ones, which keep it violated: a dual step
+                own = _on_active_rows(projected, residual, damping,
+                                      np.ascontiguousarray(rows[index]), value[others],
+                                      -1)[2]
+                leaving = _leaving_bound(own, normal, signed[index] * side, side)
+                if leaving < 0:
+                    return step, active, upper_side, NO_KKT_POINT
+                share = np.zeros(len(index))
+                share[own[3][:own[4]]] = _basic_solution(own, normal)
+                share *= side
+                signed[index] -= signed[index[leaving]] / share[leaving] * share
+                signed[index[leaving]] = 0.0
+                active[index[leaving]] = False
+                continue
+            target_signed = multiplier[others] * side
+            fraction, leaving = 1.0, -1       # the largest step keeping every sign
+            for i in range(len(index)):
+                falling = signed[index[i]] - target_signed[i]
+                if target_signed[i] < 0.0 and falling > 0.0:
+                    ratio = signed[index[i]] / falling
+                    if ratio < fraction:
+                        fraction, leaving = ratio, i
+            if leaving < 0:         # a full step: the joining bound holds
+                step, led = target, target_led
+                signed[members] = multiplier * np.where(upper_side[members], 1.0, -1.0)
+                active[joining] = True
+                break
+            step = step + fraction * (target - step)
+            signed[index] += fraction * (target_signed - signed[index])
+            signed[index[leaving]] = 0.0
+            active[index[leaving]] = False
+
+
+@numba.njit(cache=True)
+def _within_bounds(reach, low, high):
+    """Whether every bound holds within FEASIBILITY_SLACK."""
+    return np.all((reach - high <= FEASIBILITY_SLACK) & (low - reach <= FEASIBILITY_SLACK))
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
