@@ -250,16 +250,15 @@ class PIKSolver:
     def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h,
                            bounds=None):
         """_clamping in one compiled call, when the 1-DoF joints and joint groups are the
-        only limit models
-        and the hierarchy is DampedHierarchy, or QPHierarchy (bounds: its (lower, upper)),
-        whose cascades it runs too as long as their hot starts hold: the same kernels in
-        the same order, so the same bits, without the Python around each solution and
-        limit pass. Returns (HierarchySolution, solutions, finished): finished, the final
-        one; else the solution whose levels left the bounds (QPHierarchy with hot starts
-        off), or whose cascade reached a level for ProxSuite, not counted and restartable,
-        fixed, fixed_dq and h as it was solved with, for _clamping to go on from (its solve
-        restarts at no level: the same bits, the same decision). NaN bounds go to
-        _clamping (which refuses them) at once."""
+        only limit models and the hierarchy is DampedHierarchy, or QPHierarchy (bounds:
+        its (lower, upper)), whose cascades it runs too as long as their hot starts hold:
+        the same kernels in the same order, so the same bits, without the Python around
+        each solution and limit pass. Returns (HierarchySolution, solutions, finished):
+        finished, the final one; else the solution whose levels left the bounds
+        (QPHierarchy with hot starts off), or whose cascade reached a level for ProxSuite,
+        not counted and restartable, fixed, fixed_dq and h as it was solved with, for
+        _clamping to go on from (its solve restarts at no level: the same bits, the same
+        decision). NaN bounds go to _clamping (which refuses them) at once."""
         unconstrained, limits, hierarchy = self._unconstrained, self.limits, self.hierarchy
         lower, upper = (np.zeros(0), np.zeros(0)) if bounds is None else bounds
         if np.isnan(lower).any() or np.isnan(upper).any():
