@@ -44,8 +44,10 @@ def pik(tmp_path_factory):
     node = group.start("pik_node", name="pik_node")
     probe = PikProbe()
     try:
-        wait_until(lambda: probe.status_count() > 10 or node.poll() is not None, 60,
-                   what="pik_node status")
+        # each topic is discovered on its own: wait for both streams the tests read
+        wait_until(lambda: (probe.status_count() > 10 and probe.latest_joint_state()
+                            is not None) or node.poll() is not None, 60,
+                   what="pik_node status and joint states")
         assert node.poll() is None, node.log_path.read_text()
         yield node, probe
     finally:
