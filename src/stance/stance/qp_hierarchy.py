@@ -580,7 +580,7 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
     of its rows, in index order (_on_active_rows), at most POLISH_ROUNDS of them."""
     active, upper_side = active.copy(), upper_side.copy()
     signed = np.zeros(len(low))     # multipliers, positive when right (active rows' only)
-    step, led, solves = np.zeros(projected.shape[1]), False, 0
+    step, solves = np.zeros(projected.shape[1]), 0
     while True:                     # a dual feasible start: wrong-sign bounds leave
         if solves == POLISH_ROUNDS:
             return step, active, upper_side, NO_KKT_POINT
@@ -600,12 +600,13 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         if len(index) == 0 or np.min(signed[index]) >= -slack:
             break
         rank = factorization[4]
-        if solves == 1 and rank < len(index) and _within_bounds(
-                rows @ step, low, high) and _nonnegative_residual(
+        if solves == 1 and rank < len(index):
+            reach = rows @ step
+            if _within_bounds(reach, low, high) and _nonnegative_residual(
                     np.ascontiguousarray(active_rows.T * side),
                     _descent(projected, residual, damping, step), slack) <= slack:
-            return _on_tight_rows(projected, residual, damping, rows, low, high,
-                                  rows @ step, step, active, upper_side, False)
+                return _on_tight_rows(projected, residual, damping, rows, low, high, reach,
+                                      step, active, upper_side)
         if rank < len(index):       # dependent rows that agree leave: y stays, and the
             active[index[factorization[3][rank:]]] = False   # set is independent
             continue
@@ -616,7 +617,7 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         joining = np.argmax(excess)
         if excess[joining] <= FEASIBILITY_SLACK:
             return _on_tight_rows(projected, residual, damping, rows, low, high, reach,
-                                  step, active, upper_side, led)
+                                  step, active, upper_side)
         if active[joining]:
             return step, active, upper_side, NO_KKT_POINT  # active rows in conflict
         upper_side[joining] = reach[joining] > high[joining]
@@ -638,15 +639,10 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
             side = np.where(upper_side[index], 1.0, -1.0)
             if target_led:          # the joining row depends on the (independent) active
                 #                     ones, which keep it violated: a dual step
-                own = _on_active_rows(projected, residual, damping,
-                                      np.ascontiguousarray(rows[index]), value[others],
-                                      -1)[2]
-                leaving = _leaving_bound(own, normal, signed[index] * side, side)
+                own = _pivoted_qr(np.ascontiguousarray(rows[index].T), -1)
+                leaving, share = _leaving_bound(own, normal, signed[index] * side, side)
                 if leaving < 0:
                     return step, active, upper_side, NO_KKT_POINT
-                share = np.zeros(len(index))
-                share[own[3][:own[4]]] = _basic_solution(own, normal)
-                share *= side
                 signed[index] -= signed[index[leaving]] / share[leaving] * share
                 signed[index[leaving]] = 0.0
                 active[index[leaving]] = False
@@ -660,7 +656,7 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
                     if ratio < fraction:
                         fraction, leaving = ratio, i
             if leaving < 0:         # a full step: the joining bound holds
-                step, led = target, target_led
+                step = target
                 signed[members] = multiplier * np.where(upper_side[members], 1.0, -1.0)
                 active[joining] = True
                 break
@@ -678,18 +674,17 @@ def _within_bounds(reach, low, high):
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _on_tight_rows(projected, residual, damping, rows, low, high, reach, step, active,
-                   upper_side, led):
+                   upper_side):
     """The certified step of _polish, made independent of the active set that certified
     it: at a degenerate vertex several sets do (ProxSuite's duals gave two fresh solvers
     two of them, and steps 3e-14 apart). Every bound the step is on (within
     FEASIBILITY_SLACK; the upper one first) holds at the optimum, so the optimum on all
-    of them as equalities is the same point: solved again on them, without a leading
-    pivot, unless that is what the step already came from (led: whether its
-    factorization had one). Returns _polish's tuple with the certifying set (the better
+    of them as equalities is the same point: solved again on them, unless they are the
+    set the step already came from. Returns _polish's tuple with the certifying set (the better
     hot start: the tight set's extra rows would only have to leave again)."""
     on_upper = (np.abs(reach - high) <= FEASIBILITY_SLACK) & np.isfinite(high)
     tight = on_upper | ((np.abs(reach - low) <= FEASIBILITY_SLACK) & np.isfinite(low))
-    if not led and np.array_equal(tight, active) and \
+    if np.array_equal(tight, active) and \
             np.array_equal(on_upper, upper_side & active):
         return step, active, upper_side, CERTIFIED
     index = np.flatnonzero(tight)
@@ -755,18 +750,19 @@ def _descent(projected, residual, damping, step):
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _leaving_bound(factorization, joining, multiplier, side):
-    """Index (into the active rows of a _pivoted_qr factorization, their multipliers and
-    sides +-1) of the bound that a joining one replaces when its outward normal `joining`
+    """(index, share): index (into the active rows of a _pivoted_qr factorization, their
+    multipliers and sides +-1) of the bound that a joining one replaces when its outward normal `joining`
     depends on the active rows (Goldfarb and Idnani's dual step): with joining =
     sum_i c_i side_i (side_i row_i), the one of least lambda_i / (c_i side_i) over
     c_i side_i > 0, lambda_i = multiplier_i side_i (the first multiplier that raising the
     joining one's drives to 0); -1 when joining is independent of the active rows (none
-    has to leave) or no c_i side_i is positive. Without it, two dependent bounds that
-    cannot both hold replace each other in turn until the polish gives up."""
+    has to leave) or no c_i side_i is positive; share: the c_i side_i, by which the dual
+    step moves the multipliers. Without it, two dependent bounds that cannot both hold
+    replace each other in turn until the polish gives up."""
     order, rank = factorization[3], factorization[4]
     outside = _transposed_q_times(factorization, joining)[rank:]
     if np.sqrt(np.sum(outside * outside)) > RANK_RELATIVE * np.sqrt(np.sum(joining * joining)):
-        return -1
+        return -1, np.zeros(len(side))
     coefficients = np.zeros(len(side))
     coefficients[order[:rank]] = _basic_solution(factorization, joining)
     share = coefficients * side
@@ -777,7 +773,7 @@ def _leaving_bound(factorization, joining, multiplier, side):
             ratio = multiplier[i] * side[i] / share[i]
             if ratio < least:
                 leaving, least = i, ratio
-    return leaving
+    return leaving, share
 
 
 @numba.njit(cache=True, fastmath=REORDERING)

@@ -493,8 +493,7 @@ class SwingTwistRule:
     def warm_up(self, q) -> None:
         """Compile the kernels a decision near the limits needs (PIKSolver.warm_up): the
         rule's, at the joint's rotation at q."""
-        rotation = np.ascontiguousarray(self.rotation(q))
-        s, theta = swing_twist(rotation)
+        s, theta = swing_twist(self.rotation(q))
         distance = self.domain.signed_distance(s)
         self.domain.normal_at(s)
         _may_reach(s, theta, distance, 0.0, self.thickness, self.rule[2])
