@@ -493,7 +493,8 @@ class SwingTwistRule:
     def warm_up(self, q) -> None:
         """Compile the kernels a decision near the limits needs (PIKSolver.warm_up): the
         rule's, at the joint's rotation at q."""
-        s, theta = swing_twist(self.rotation(q))
+        rotation = self.rotation(q)
+        s, theta = swing_twist(rotation)
         distance = self.domain.signed_distance(s)
         self.domain.normal_at(s)
         _may_reach(s, theta, distance, 0.0, self.thickness, self.rule[2])
