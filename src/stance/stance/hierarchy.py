@@ -33,7 +33,9 @@ import numpy as np
 
 
 # Let LLVM reorder sums (vectorized dot products); unlike full fastmath, NaN and infinity
-# keep their meaning. Results stay bitwise deterministic for a given input and machine.
+# keep their meaning. Results are bitwise deterministic for a given input and compiled code;
+# LLVM may reorder an inlined copy differently, so a fresh compile and a cached one can
+# differ in the last bits.
 REORDERING = {"reassoc", "contract", "nsz"}
 
 
