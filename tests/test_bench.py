@@ -19,7 +19,15 @@ def test_bench_groups_reports_both_limit_sets_and_their_ratio(tmp_path, capsys):
         assert 0 < grouped["median_us"] <= grouped["p99_us"]
         # four more limit models to ask at every clamping iteration cost something
         assert result[scenario]["ratio"] == grouped["median_us"] / plain["median_us"] > 1.0
-    assert "arms out" in capsys.readouterr().out
+    loops = result["mannequin thorn"]
+    compiled, general = loops["compiled loop"], loops["general loop"]
+    assert 0 < compiled["median_us"] <= compiled["p99_us"]
+    assert 0 < general["median_us"] <= general["p99_us"]
+    assert loops["ratio"] == compiled["median_us"] / general["median_us"]
+    # the same decisions either way, so the same clamping iterations
+    assert compiled["mean_clamping_iterations"] == general["mean_clamping_iterations"]
+    output = capsys.readouterr().out
+    assert "arms out" in output and "spherical joints" in output
 
 
 def test_bench_levels_compares_each_level_count_with_one_less(tmp_path):

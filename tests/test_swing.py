@@ -21,8 +21,8 @@ from stance.limits import cubic_step
 from stance.models import MANNEQUIN_LIMIT_FILE, build_mannequin
 from stance.swing import (BallLimit, EllipticCone, LimitFileError, SphericalPolygon,
                           SwingLimit, damp_swing, load_limit_file, parse_limits,
-                          rotation_from_swing_twist, swing_direction, swing_from_direction,
-                          swing_rotation, swing_twist)
+                          quaternion_rotation, rotation_from_swing_twist, rotation_quaternion,
+                          swing_direction, swing_from_direction, swing_rotation, swing_twist)
 
 THICKNESS = 0.2
 SWING_TOLERANCE = math.radians(0.5)
@@ -262,6 +262,24 @@ def limit_models(mannequin):
     return load_limit_file(MANNEQUIN_LIMIT_FILE, mannequin)
 
 
+@settings(max_examples=200, deadline=None, derandomize=True, database=None)
+@given(coefficients=st.lists(st.floats(-2.0, 2.0), min_size=4, max_size=4).filter(
+    lambda c: np.linalg.norm(c) > 1e-3))
+def test_compiled_quaternion_conversions_are_pinocchios(coefficients):
+    """quaternion_rotation and rotation_quaternion (the ball joints' compiled decisions and
+    projections) = Pinocchio's (Eigen's) conversions, an unnormalized quaternion included,
+    to rounding; the round trip gives the unit quaternion back up to its sign."""
+    coefficients = np.asarray(coefficients)
+    quaternion = pin.Quaternion(coefficients).normalized()
+    rotation = quaternion_rotation(coefficients)
+    np.testing.assert_allclose(rotation, quaternion.toRotationMatrix(), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(rotation_quaternion(rotation),
+                               pin.Quaternion(rotation).coeffs(), rtol=0, atol=1e-15)
+    back = rotation_quaternion(rotation)
+    assert min(np.abs(back - quaternion.coeffs()).max(),
+               np.abs(back + quaternion.coeffs()).max()) < 1e-14
+
+
 def test_ball_decision_fixes_the_joint_on_the_damped_target(mannequin):
     model = BallLimit.for_joint(mannequin, "left_hip", CONE, twist=(-0.5, 0.5))
     q = mannequin.initial_configuration("standing")
@@ -352,6 +370,24 @@ def test_no_swing_or_twist_ever_leaves_its_limits(mannequin, limit_models, strat
         for model in limit_models:
             assert swing_excess(model, q) <= SWING_TOLERANCE, model.joint
             assert twist_excess(model, q) <= TWIST_TOLERANCE, model.joint
+
+
+@pytest.mark.parametrize("strategy", ["clamping", "progressive"])
+@PROPERTY
+@given(seed=SEEDS, reachable=st.booleans())
+def test_the_compiled_clamping_loop_gives_the_python_loops_bits(mannequin, limit_models,
+                                                                strategy, seed, reachable):
+    """The mannequin's spherical joints decide inside the compiled clamping loop
+    (swing.ball_fix): every step gives the general loop's bits, with the same decisions."""
+    start = mannequin_start(mannequin, limit_models, np.random.default_rng(seed))
+    compiled, general = (mannequin_run(mannequin, limit_models, start, seed, reachable,
+                                       strategy, one_call=one_call)
+                         for one_call in (True, False))
+    for (q, result), (general_q, expected) in zip(compiled, general):
+        assert q.tobytes() == general_q.tobytes()
+        assert result.damping.tobytes() == expected.damping.tobytes()
+        assert result.clamped.tobytes() == expected.clamped.tobytes()
+        assert result.clamping_iterations == expected.clamping_iterations
 
 
 def excesses(limit_models, q) -> np.ndarray:

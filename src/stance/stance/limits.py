@@ -83,16 +83,6 @@ def fix_joints(configuration, variation, indices, table, progressive, fixed, fix
     return count
 
 
-def apply_decision(decision: LimitDecision, fixed, fixed_dq, h) -> bool:
-    """Write a decision into the clamping loop's arrays (nv each); True if it fixes any DoF."""
-    if not len(decision.index):
-        return False
-    fixed[decision.index] = True
-    fixed_dq[decision.index] = decision.dq
-    h[decision.index] = decision.h
-    return True
-
-
 def decision_by_fixing(model, q, dq, free, progressive: bool) -> LimitDecision:
     """The decision of a model that fixes in place (model.fix; v_index: its velocity
     DoFs), taken on scratch arrays: the free DoFs it fixes, their variations and h."""

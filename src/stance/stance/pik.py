@@ -33,7 +33,7 @@ from .limits import RevoluteLimits, fix_joints, make_strategy
 from .qp_hierarchy import QPHierarchy, cascade_compiled, empty_cascade_state
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
-from .swing import NO_GROUP, JointGroupLimit, group_fix
+from .swing import NO_BALL, NO_GROUP, BallLimit, JointGroupLimit, ball_fix, group_fix
 from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
                     step_cap_groups)
 
@@ -102,11 +102,14 @@ class PIKSolver:
         their own controllers command): their variations are 0 as highest-priority
         equalities from the first solution of every step on, so no limit or task ever
         costs a re-solve for them. RobotModelError for an unknown name or the base.
+    compiled_loop: run the clamping loop in one compiled call where the hierarchy and
+        limit models allow it (the same bits); False: always the general loop, the
+        reference it is tested and benchmarked against.
     """
 
     def __init__(self, robot, strategy: str = "progressive", damping: float = 1e-3,
                  activation: float = 0.2, dt: float | None = None, hierarchy="svd",
-                 limit_models=(), locked_joints=()):
+                 limit_models=(), locked_joints=(), compiled_loop: bool = True):
         self.robot = robot
         self.locked_joints = list(locked_joints)
         self._locked_v = _locked_dofs(robot, self.locked_joints)
@@ -132,13 +135,17 @@ class PIKSolver:
         self._layout = self._make_layout()
         self._uses_bounds = getattr(self.hierarchy, "uses_bounds", False)
         # the clamping loop in one compiled call: damped least squares (QPHierarchy: while
-        # its unconstrained solves stay within the bounds), 1-DoF limits and joint groups
+        # its unconstrained solves stay within the bounds), 1-DoF limits, joint groups and
+        # spherical joints
         self._unconstrained = getattr(self.hierarchy, "unconstrained", self.hierarchy)
-        self._one_call_loop = (isinstance(self._unconstrained, DampedHierarchy)
-                               and all(isinstance(model, JointGroupLimit)
+        self._one_call_loop = (compiled_loop
+                               and isinstance(self._unconstrained, DampedHierarchy)
+                               and all(isinstance(model, (JointGroupLimit, BallLimit))
                                        for model in limit_models))
         self._groups = tuple(model.kernel_arguments for model in limit_models
                              if isinstance(model, JointGroupLimit)) or (NO_GROUP,)
+        self._balls = tuple(model.kernel_arguments for model in limit_models
+                            if isinstance(model, BallLimit)) or (NO_BALL,)
 
     @property
     def strategy_name(self) -> str:
@@ -249,8 +256,8 @@ class PIKSolver:
 
     def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h,
                            bounds=None):
-        """_clamping in one compiled call, when the 1-DoF joints and joint groups are the
-        only limit models and the hierarchy is DampedHierarchy, or QPHierarchy (bounds:
+        """_clamping in one compiled call, when the 1-DoF joints, joint groups and
+        spherical joints are the only limit models and the hierarchy is DampedHierarchy, or QPHierarchy (bounds:
         its (lower, upper)), whose cascades it runs too as long as their hot starts hold:
         the same kernels in the same order, so the same bits, without the Python around
         each solution and limit pass. Returns (HierarchySolution, solutions, finished):
@@ -269,7 +276,7 @@ class PIKSolver:
         (dq, level_steps, residuals, iterations, finished, cascaded, solved_fixed,
          solved_values, level_bases, level_ranks, level_starts) = _clamping_loop(
             jacobian, target, offsets, q, limits.indices, limits.table, self._groups,
-            self.strategy.progressive, fixed, fixed_dq, h, unconstrained.damping,
+            self._balls, self.strategy.progressive, fixed, fixed_dq, h, unconstrained.damping,
             unconstrained.rank_tolerance, lower, upper, cascades, cascade_state)
         if finished and cascaded:
             enforced = cascade_state[-2]    # scratch arrays: the next step reuses them
@@ -395,12 +402,12 @@ class PIKSolver:
 
 
 @numba.njit(cache=True)
-def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, groups,
+def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, groups, balls,
                    progressive, fixed, fixed_dq, h, damping, rank_tolerance, lower, upper,
                    cascades, cascade_state):
     """PIKSolver._clamping for DampedHierarchy, RevoluteLimits (the indices and table
-    of limits.fix_joints) and joint groups (swing.group_fix's arguments, or NO_GROUP) in
-    one call: each solution restarts from the previous one's levels
+    of limits.fix_joints), joint groups (swing.group_fix's arguments, or NO_GROUP) and
+    spherical joints (swing.ball_fix's, or NO_BALL) in one call: each solution restarts from the previous one's levels
     (hierarchy.solve_compiled); fixed, fixed_dq and h (nv) are filled in place.
     lower, upper: QPHierarchy's bounds on dq (nv each; empty: none). A solution whose
     levels leave them (first_level_out_of_bounds), or that starts outside them, is
@@ -455,8 +462,8 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
             return (dq, level_steps, residuals, solutions, False, cascaded, now_fixed,
                     values, level_bases, level_ranks, level_starts)
         solutions += 1
-        if not _fix_limits(q, dq, limit_indices, limit_table, groups, progressive, fixed,
-                           fixed_dq, h):
+        if not _fix_limits(q, dq, limit_indices, limit_table, groups, balls, progressive,
+                           fixed, fixed_dq, h):
             return (dq, level_steps, cascade_residuals if cascaded else residuals, solutions,
                     True, cascaded, now_fixed, values, level_bases, level_ranks,
                     level_starts)
@@ -465,13 +472,17 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
 
 
 @numba.njit(cache=True)
-def _fix_limits(q, dq, limit_indices, limit_table, groups, progressive, fixed, fixed_dq, h):
-    """The limit pass of PIKSolver._clamping, compiled: the 1-DoF joints' then each joint
-    group's decision written in place (fixed, fixed_dq, h: nv); True if any DoF is fixed."""
+def _fix_limits(q, dq, limit_indices, limit_table, groups, balls, progressive, fixed,
+                fixed_dq, h):
+    """The limit pass of PIKSolver._clamping, compiled: the 1-DoF joints', each joint
+    group's and each spherical joint's decision written in place (fixed, fixed_dq, h: nv;
+    the models' DoFs do not overlap, so the order is free); True if any DoF is fixed."""
     changed = fix_joints(q, dq, limit_indices, limit_table, progressive, fixed, fixed_dq,
                          h) > 0
     for group in groups:
         changed |= group_fix(group, q, dq, progressive, fixed, fixed_dq, h)
+    for ball in balls:
+        changed |= ball_fix(ball, q, dq, progressive, fixed, fixed_dq, h)
     return changed
 
 

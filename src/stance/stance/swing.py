@@ -32,16 +32,14 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import NamedTuple
 
 import numba
 import numpy as np
-import pinocchio as pin
 import yaml
 
 from .hierarchy import _damped_least_squares
 from .limits import (NEGLIGIBLE_VARIATION, LimitDecision, RevoluteLimits, keep_inside_bounds,
-                     apply_decision, cubic_step, decision_by_fixing, fix_joints)
+                     cubic_step, decision_by_fixing, fix_joints)
 
 OUTSIDE_TOLERANCE = 1e-9   # rad: a state this close outside a limit counts as on it
 Z_AXIS = np.array([0.0, 0.0, 1.0])
@@ -485,14 +483,13 @@ class SwingTwistRule:
         self.rule = (domain.geometry, self.thickness,
                      FREE_TWIST if self.twist is None else self.twist.table)
 
-    def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
-        """The subclass' decide() written in place into the clamping loop's arrays (fixed,
-        fixed_dq, h: nv); True if it fixes any DoF."""
-        return apply_decision(self.decide(q, dq, ~fixed, progressive), fixed, fixed_dq, h)
+    def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
+        """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
+        return decision_by_fixing(self, q, dq, free, progressive)
 
     def warm_up(self, q) -> None:
         """Compile the kernels a decision near the limits needs (PIKSolver.warm_up): the
-        rule's, at the joint's rotation at q."""
+        rule's at the joint's rotation at q, and the subclass' fix and keep_inside."""
         rotation = self.rotation(q)
         s, theta = swing_twist(rotation)
         distance = self.domain.signed_distance(s)
@@ -500,21 +497,117 @@ class SwingTwistRule:
         _may_reach(s, theta, distance, 0.0, self.thickness, self.rule[2])
         _altered(self.rule, s, theta, distance, rotation, True)
         _projected(self.rule, s, theta, distance, rotation)
+        nv = int(self.v_index.max()) + 1
+        self.fix(q, np.zeros(nv), np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv), True)
+        self.keep_inside(q, q.copy())
 
 
-class JointRotation(NamedTuple):
-    """A joint rotation at one configuration: R (3x3), its swing s and twist theta (rad),
-    and the swing's signed distance to the limit (rad)."""
-    rotation: np.ndarray
-    s: np.ndarray
-    twist: float
-    distance: float
+@numba.njit(cache=True)
+def quaternion_rotation(coefficients):
+    """Rotation matrix of the quaternion (x, y, z, w) normalized (Eigen's
+    toRotationMatrix), in compiled code."""
+    norm = math.sqrt(coefficients[0] ** 2 + coefficients[1] ** 2 + coefficients[2] ** 2
+                     + coefficients[3] ** 2)
+    x, y, z, w = (coefficients[0] / norm, coefficients[1] / norm, coefficients[2] / norm,
+                  coefficients[3] / norm)
+    tx, ty, tz = 2.0 * x, 2.0 * y, 2.0 * z
+    twx, twy, twz = tx * w, ty * w, tz * w
+    txx, txy, txz = tx * x, ty * x, tz * x
+    tyy, tyz, tzz = ty * y, tz * y, tz * z
+    return np.array([[1.0 - (tyy + tzz), txy - twz, txz + twy],
+                     [txy + twz, 1.0 - (txx + tzz), tyz - twx],
+                     [txz - twy, tyz + twx, 1.0 - (txx + tyy)]])
+
+
+@numba.njit(cache=True)
+def rotation_quaternion(rotation):
+    """Unit quaternion (x, y, z, w) of a rotation matrix (Eigen's conversion), in
+    compiled code."""
+    trace = rotation[0, 0] + rotation[1, 1] + rotation[2, 2]
+    coefficients = np.empty(4)
+    if trace > 0.0:
+        t = math.sqrt(trace + 1.0)
+        coefficients[3] = 0.5 * t
+        t = 0.5 / t
+        coefficients[0] = (rotation[2, 1] - rotation[1, 2]) * t
+        coefficients[1] = (rotation[0, 2] - rotation[2, 0]) * t
+        coefficients[2] = (rotation[1, 0] - rotation[0, 1]) * t
+        return coefficients
+    i = 0
+    if rotation[1, 1] > rotation[0, 0]:
+        i = 1
+    if rotation[2, 2] > rotation[i, i]:
+        i = 2
+    j, k = (i + 1) % 3, (i + 2) % 3
+    t = math.sqrt(rotation[i, i] - rotation[j, j] - rotation[k, k] + 1.0)
+    coefficients[i] = 0.5 * t
+    t = 0.5 / t
+    coefficients[3] = (rotation[k, j] - rotation[j, k]) * t
+    coefficients[j] = (rotation[j, i] + rotation[i, j]) * t
+    coefficients[k] = (rotation[k, i] + rotation[i, k]) * t
+    return coefficients
+
+
+@numba.njit(cache=True)
+def _ball_state(ball, q):
+    """(R, s, theta, distance) of a ball joint at configuration q: its rotation, swing and
+    twist (rad), and the swing's signed distance inside the limit (rad)."""
+    indices, rule = ball
+    rotation = quaternion_rotation(q[indices[0]:indices[0] + 4])
+    s, theta = swing_twist(rotation)
+    return rotation, s, theta, _domain_distance(rule[0], s)
+
+
+@numba.njit(cache=True)
+def ball_fix(ball, q, dq, progressive, fixed, fixed_dq, h):
+    """BallLimit.fix in one compiled call. ball: BallLimit.kernel_arguments, ((first q
+    index, first v index), swing / twist rule); q index -1 fixes nothing (NO_BALL)."""
+    indices, rule = ball
+    first = indices[1]
+    if indices[0] < 0:
+        return False
+    moving = 0.0
+    for k in range(3):
+        if fixed[first + k]:
+            return False
+        moving += dq[first + k] * dq[first + k]
+    reach = math.sqrt(moving)
+    if reach <= NEGLIGIBLE_VARIATION:
+        return False
+    rotation, s, theta, distance = _ball_state(ball, q)
+    if not _may_reach(s, theta, distance, reach, rule[1], rule[2]):
+        return False
+    altered, target, swing_h, twist_h = _altered(
+        rule, s, theta, distance, _product3(rotation, rotation_exp(dq[first:first + 3])),
+        progressive)
+    if not altered:
+        return False
+    variation = rotation_log(_product3(rotation.T.copy(), target))
+    for k in range(3):
+        fixed[first + k], fixed_dq[first + k] = True, variation[k]
+    h[first], h[first + 1], h[first + 2] = swing_h, swing_h, twist_h
+    return True
+
+
+@numba.njit(cache=True)
+def _ball_keep_inside(ball, q, q_next):
+    """BallLimit.keep_inside in one compiled call (ball: ball_fix's)."""
+    indices, rule = ball
+    rotation, s, theta, distance = _ball_state(ball, q)
+    following = quaternion_rotation(q_next[indices[0]:indices[0] + 4])
+    turn = rotation_log(_product3(rotation.T.copy(), following))
+    if not _may_reach(s, theta, distance, math.sqrt(np.sum(turn * turn)), 0.0, rule[2]):
+        return
+    changed, projected = _projected(rule, s, theta, distance, following)
+    if changed:
+        q_next[indices[0]:indices[0] + 4] = rotation_quaternion(projected)
 
 
 class BallLimit(SwingTwistRule):
     """Ball-and-socket limit (IV.B.3) of one Pinocchio spherical joint (q: quaternion x, y,
     z, w; dq: local angular velocity, rad); see SwingTwistRule. Fixes all three velocity
-    DoFs to log3(R_k^T R'_{k+1}) whenever the swing or the twist is altered."""
+    DoFs to log3(R_k^T R'_{k+1}) whenever the swing or the twist is altered. Decisions and
+    projections run compiled (ball_fix, _ball_keep_inside)."""
 
     def __init__(self, joint: str, q_index: int, v_index: int, domain: SwingDomain,
                  twist=None, activation: float = 0.2):
@@ -523,7 +616,7 @@ class BallLimit(SwingTwistRule):
         self.q_slice = slice(q_index, q_index + 4)
         self.v_index = np.arange(v_index, v_index + 3)
         self.dof_names = [f"{joint}_swing_x", f"{joint}_swing_y", f"{joint}_twist"]
-        self._state_key, self._state = None, None   # current()'s cache
+        self.kernel_arguments = (np.array([q_index, v_index], dtype=np.int64), self.rule)
 
     @classmethod
     def for_joint(cls, robot, joint: str, *args, **kwargs):
@@ -535,51 +628,18 @@ class BallLimit(SwingTwistRule):
 
     def rotation(self, q) -> np.ndarray:
         """Joint rotation R (joint frame relative to its placement) at configuration q."""
-        return pin.Quaternion(np.asarray(q[self.q_slice])).normalized().toRotationMatrix()
+        return quaternion_rotation(np.asarray(q[self.q_slice], dtype=float))
 
-    def current(self, q) -> JointRotation:
-        """The joint rotation at q: computed once per configuration, since the clamping loop
-        asks about several moves from the same one."""
-        key = q[self.q_slice].tobytes()
-        if self._state_key != key:
-            rotation = self.rotation(q)
-            s, theta = swing_twist(rotation)
-            self._state_key = key
-            self._state = JointRotation(rotation, s, theta, self.domain.signed_distance(s))
-        return self._state
-
-    def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
-        """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
-        velocity = dq[self.v_index]
-        if (not np.all(free[self.v_index])
-                or np.linalg.norm(velocity) <= NEGLIGIBLE_VARIATION):
-            return _nothing()
-        current = self.current(q)
-        if not _may_reach(current.s, current.twist, current.distance,
-                          float(np.linalg.norm(velocity)), self.thickness, self.rule[2]):
-            return _nothing()
-        altered, target, swing_h, twist_h = _altered(
-            self.rule, current.s, current.twist, current.distance,
-            current.rotation @ pin.exp3(velocity), progressive)
-        if not altered:
-            return _nothing()
-        fixed = pin.log3(current.rotation.T @ target)
-        return LimitDecision(self.v_index.copy(), fixed,
-                             np.array([swing_h, swing_h, twist_h]))
+    def fix(self, q, dq, fixed, fixed_dq, h, progressive: bool) -> bool:
+        """Fix in place (fixed, fixed_dq, h: nv) the joint's three DoFs, when none is
+        fixed yet and the swing / twist rule alters the rotation dq (nv) moves it to;
+        True if it does. q: configuration (nq)."""
+        return bool(ball_fix(self.kernel_arguments, q, dq, progressive, fixed, fixed_dq, h))
 
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's joint rotation (in place) into the limits without moving it
         further out than q: removes the negligible overshoot the decisions ignored."""
-        current = self.current(q)
-        following = self.rotation(q_next)
-        turn = float(np.linalg.norm(pin.log3(current.rotation.T @ following)))
-        if not _may_reach(current.s, current.twist, current.distance, turn, 0.0,
-                          self.rule[2]):
-            return
-        changed, rotation = _projected(self.rule, current.s, current.twist, current.distance,
-                                       following)
-        if changed:
-            q_next[self.q_slice] = pin.Quaternion(rotation).coeffs()
+        _ball_keep_inside(self.kernel_arguments, q, q_next)
 
 
 class SwingLimit(BallLimit):
@@ -806,9 +866,6 @@ class JointGroupLimit(SwingTwistRule):
 
     def warm_up(self, q) -> None:
         super().warm_up(q)
-        nv = int(self.v_index.max()) + 1
-        self.fix(q, np.zeros(nv), np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv), True)
-        self.keep_inside(q, q.copy())
         self.angles_for(self.rotation(q), q[self.q_index])
 
     def rotation(self, q) -> np.ndarray:
@@ -836,10 +893,6 @@ class JointGroupLimit(SwingTwistRule):
         dq: candidate variation (nv). Joints fixed earlier keep their variation."""
         return bool(group_fix(self.kernel_arguments, q, dq, progressive, fixed, fixed_dq, h))
 
-    def decide(self, q, dq, free, progressive: bool) -> LimitDecision:
-        """q: configuration (nq), dq: candidate variation (nv), free: bool (nv)."""
-        return decision_by_fixing(self, q, dq, free, progressive)
-
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's group rotation, then its joints (in place), into the limits
         without moving either further out than q (alternately, a few rounds: the bounds
@@ -852,10 +905,8 @@ class JointGroupLimit(SwingTwistRule):
 NO_GROUP = ((np.zeros((0, 3, 3)), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
              np.zeros(0, dtype=np.int64)), (EllipticCone(1.0, 1.0).geometry, 1.0, FREE_TWIST),
             (np.zeros((2, 0), dtype=np.int64), np.zeros((5, 0))))
-
-
-def _nothing() -> LimitDecision:
-    return LimitDecision(np.zeros(0, dtype=int), np.zeros(0), np.zeros(0))
+# ball_fix's arguments for no joint: the compiled loop's stand-in for a robot without balls
+NO_BALL = (np.array([-1, -1], dtype=np.int64), NO_GROUP[1])
 
 
 # Limit files.

@@ -7,7 +7,8 @@
 - levels: cost of a step as priority levels are added, SVD and QP hierarchies side by side
   (Talos, 1 to 4 levels; Panda arm, 2 levels).
 - groups: cost of a step with Talos' hips and shoulders limited as ball / swing joints
-  (the shipped limit file's joint groups) against 1-DoF limits only.
+  (the shipped limit file's joint groups) against 1-DoF limits only; the mannequin's
+  spherical joints on the thorn experiment, compiled clamping loop against the general one.
 - node: pik_node's loop rate and latency over DDS (stance_tools.bench_node).
 - plan: the contact planner on the chair scene, ordered sons on and off
   (stance_tools.bench_plan).
@@ -42,7 +43,8 @@ BENCHMARKS = {
     "levels": (__name__, "add_levels_arguments", "run_levels",
                "step cost per added priority level, SVD vs QP hierarchy (Talos, Panda)"),
     "groups": (__name__, "add_groups_arguments", "run_groups",
-               "step cost with Talos' joint groups (hips, shoulders) vs 1-DoF limits only"),
+               "step cost with Talos' joint groups (hips, shoulders) vs 1-DoF limits only; "
+               "the mannequin's spherical joints, compiled vs general clamping loop"),
     "node": ("stance_tools.bench_node", "add_node_arguments", "run_node",
              "pik_node over DDS: loop rate at 500 Hz, target-to-joint_states latency"),
     "interpolate": ("stance_tools.bench_interpolate", "add_interpolate_arguments",
@@ -163,6 +165,13 @@ class StanceContender:
     def step(self, q):
         result = self.solver.step(q)
         return result.q, result.clamping_iterations
+
+
+class SolverContender(StanceContender):
+    """A PIKSolver already set up (stack, targets), stepped as a contender."""
+
+    def __init__(self, name, solver):
+        self.name, self.solver = name, solver
 
 
 class PinkContender:
@@ -585,8 +594,42 @@ def run_groups(args) -> int:
                   f"{entry['mean_clamping_iterations']:>7.2f}{ratio:>9}")
     print("hand offsets (m, world): " + "; ".join(
         f"{scenario} {offsets}" for scenario, offsets in GROUP_SCENARIOS.items()))
+    results["mannequin thorn"] = spherical_joint_loops(args)
     if args.json:
         with open(args.json, "w") as output:
             json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt, **results},
                       output, indent=2)
     return 0
+
+
+def spherical_joint_loops(args) -> dict:
+    """The mannequin's step on the thorn experiment (stance reproduce thorn: its stack,
+    targets and start), its eleven spherical joints deciding in the compiled clamping loop
+    against the general loop, interleaved; printed and returned as timing per loop."""
+    from threadpoolctl import threadpool_limits
+
+    from stance.experiments.thorn import HUMANOIDS, thorn_solver
+
+    humanoid = HUMANOIDS["mannequin"]
+    mannequin = humanoid.load()
+    start = mannequin.initial_configuration(humanoid.start)
+    with threadpool_limits(limits=1):
+        contenders = [SolverContender(name, thorn_solver(humanoid, mannequin, "progressive",
+                                                         start, compiled_loop=compiled))
+                      for name, compiled in (("compiled loop", True),
+                                             ("general loop", False))]
+        race(contenders, mannequin, start, args.warmup)
+        records = race(contenders, mannequin, start, args.steps)
+    result = {name: {**timing_us(record),
+                     "mean_clamping_iterations": float(np.mean(record.iterations))}
+              for name, record in records.items()}
+    ratio = result["compiled loop"]["median_us"] / result["general loop"]["median_us"]
+    print(f"mannequin (nv {mannequin.model.nv}), thorn experiment (Figs. 11-12), its "
+          f"{len(humanoid.limit_models(mannequin))} spherical joints limited, progressive "
+          f"clamping, the two loops interleaved:")
+    print(f"{'loop':<15}{'median us':>10}{'p99 us':>10}{'iters':>7}{'x general':>11}")
+    for name, entry in result.items():
+        print(f"{name:<15}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
+              f"{entry['mean_clamping_iterations']:>7.2f}"
+              f"{f'{ratio:.2f}' if name == 'compiled loop' else '-':>11}")
+    return {**result, "ratio": ratio}

@@ -143,10 +143,11 @@ def thorn_stack(frames: dict) -> list:
     ]
 
 
-def thorn_solver(humanoid: Humanoid, robot: Robot, strategy: str, q_start) -> PIKSolver:
+def thorn_solver(humanoid: Humanoid, robot: Robot, strategy: str, q_start,
+                 compiled_loop: bool = True) -> PIKSolver:
     """Solver with the thorn stack; targets from the kinematics of q_start."""
     solver = PIKSolver(robot, strategy=strategy, damping=DAMPING, activation=ACTIVATION,
-                       limit_models=humanoid.limit_models(robot))
+                       limit_models=humanoid.limit_models(robot), compiled_loop=compiled_loop)
     solver.set_stack(thorn_stack(humanoid.frames), q_start)  # holds every task at q_start
     data, model = robot.data, robot.model
     place = {role: data.oMf[model.getFrameId(frame)] for role, frame in humanoid.frames.items()}
