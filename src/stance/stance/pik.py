@@ -291,8 +291,10 @@ class PIKSolver:
 
     def warm_up(self, q: np.ndarray) -> None:
         """Compile (or load from numba's disk cache) the step's kernels, including the
-        velocity-saturation path, by one discarded step from q: the first compilation takes
-        about 20 s, which a real-time loop must not pay on its first cycle."""
+        velocity-saturation path, by one discarded step from q: the first compilation of a
+        source version takes about 80-90 s on a 2-core machine (Talos, the mannequin; each
+        set of limit models compiles its own clamping loop, 15 s more for Talos' groups),
+        which a real-time loop must not pay on its first cycle; then 0.5 s from the cache."""
         robot, nv = self.robot, self.robot.model.nv
         self.step(q)   # leaves the stacked Jacobian and target filled at q
         _level_residuals(self._jacobian, self._target, self._layout.offsets, np.zeros(nv))
