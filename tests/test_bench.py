@@ -19,6 +19,9 @@ def test_bench_groups_reports_both_limit_sets_and_their_ratio(tmp_path, capsys):
         assert 0 < grouped["median_us"] <= grouped["p99_us"]
         # four more limit models to ask at every clamping iteration cost something
         assert result[scenario]["ratio"] == grouped["median_us"] / plain["median_us"] > 1.0
+        qp = result[scenario]["1-DoF limits qp"]
+        assert 0 < qp["median_us"] <= qp["p99_us"] <= qp["max_us"]
+        assert result[scenario]["qp_ratio"] == qp["median_us"] / plain["median_us"]
     loops = result["mannequin thorn"]
     compiled, general = loops["compiled loop"], loops["general loop"]
     assert 0 < compiled["median_us"] <= compiled["p99_us"]

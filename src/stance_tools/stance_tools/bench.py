@@ -7,7 +7,8 @@
 - levels: cost of a step as priority levels are added, SVD and QP hierarchies side by side
   (Talos, 1 to 4 levels; Panda arm, 2 levels).
 - groups: cost of a step with Talos' hips and shoulders limited as ball / swing joints
-  (the shipped limit file's joint groups) against 1-DoF limits only; the mannequin's
+  (the shipped limit file's joint groups) against 1-DoF limits only, and of the QP
+  hierarchy on the same problems (arms out: bounds binding every step); the mannequin's
   spherical joints on the thorn experiment, compiled clamping loop against the general one.
 - node: pik_node's loop rate and latency over DDS (stance_tools.bench_node).
 - plan: the contact planner on the chair scene, ordered sons on and off
@@ -567,33 +568,37 @@ def run_groups(args) -> int:
     results = {}
     print(f"stance bench groups: Talos, feet > CoM xy > both hands > posture, progressive "
           f"clamping, dt {args.dt} s, {args.steps} timed steps after {args.warmup} warm-up, "
-          f"the two limit sets interleaved, one BLAS thread; groups: "
+          f"the contenders interleaved, one BLAS thread; groups: "
           f"{', '.join(model.name for model in groups)}")
-    print(f"{'scenario':<15}{'limits':<15}{'median us':>10}{'p99 us':>10}{'iters':>7}"
-          f"{'x 1-DoF':>9}")
+    print(f"{'scenario':<15}{'limits':<19}{'median us':>10}{'p99 us':>10}{'max us':>10}"
+          f"{'iters':>7}{'x 1-DoF':>9}")
     for scenario, offsets in GROUP_SCENARIOS.items():
         targets = bench_targets(talos, specs, start, offsets)
         with threadpool_limits(limits=1):
             contenders = [StanceContender(talos, "progressive", specs, targets, start,
-                                          args.dt, name=name, limit_models=models)
-                          for name, models in (("1-DoF limits", ()),
-                                               ("joint groups", groups))]
+                                          args.dt, qp=qp, name=name, limit_models=models)
+                          for name, models, qp in (("1-DoF limits", (), False),
+                                                   ("joint groups", groups, False),
+                                                   ("1-DoF limits qp", (), True))]
             race(contenders, talos, start, args.warmup)
             records = race(contenders, talos, start, args.steps)
         result = {contender.name: {**timing_us(records[contender.name]),
                                    "mean_clamping_iterations":
                                        float(np.mean(records[contender.name].iterations))}
                   for contender in contenders}
-        result["ratio"] = (result["joint groups"]["median_us"]
-                           / result["1-DoF limits"]["median_us"])
+        plain = result["1-DoF limits"]["median_us"]
+        result["ratio"] = result["joint groups"]["median_us"] / plain
+        result["qp_ratio"] = result["1-DoF limits qp"]["median_us"] / plain
         results[scenario] = {"hand_offsets": offsets, **result}
-        for name in ("1-DoF limits", "joint groups"):
+        for name, ratio in (("1-DoF limits", None), ("joint groups", result["ratio"]),
+                            ("1-DoF limits qp", result["qp_ratio"])):
             entry = result[name]
-            ratio = f"{result['ratio']:.2f}" if name == "joint groups" else "-"
-            print(f"{scenario:<15}{name:<15}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
-                  f"{entry['mean_clamping_iterations']:>7.2f}{ratio:>9}")
+            print(f"{scenario:<15}{name:<19}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
+                  f"{entry['max_us']:>10.1f}{entry['mean_clamping_iterations']:>7.2f}"
+                  f"{'-' if ratio is None else f'{ratio:.2f}':>9}")
     print("hand offsets (m, world): " + "; ".join(
-        f"{scenario} {offsets}" for scenario, offsets in GROUP_SCENARIOS.items()))
+        f"{scenario} {offsets}" for scenario, offsets in GROUP_SCENARIOS.items())
+        + "; qp: the same 1-DoF limits on the QP hierarchy (joint and velocity bounds)")
     results["mannequin thorn"] = spherical_joint_loops(args)
     if args.json:
         with open(args.json, "w") as output:
