@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from stance.limits import cubic_step
 from stance.models import MANNEQUIN_LIMIT_FILE, build_mannequin
 from stance.swing import (BallLimit, EllipticCone, LimitFileError, SphericalPolygon,
-                          SwingLimit, damp_swing, load_limit_file, parse_limits,
+                          SwingLimit, _altered, damp_swing, load_limit_file, parse_limits,
                           quaternion_rotation, rotation_from_swing_twist, rotation_quaternion,
                           swing_direction, swing_from_direction, swing_rotation, swing_twist)
 
@@ -272,12 +272,54 @@ def test_compiled_quaternion_conversions_are_pinocchios(coefficients):
     coefficients = np.asarray(coefficients)
     quaternion = pin.Quaternion(coefficients).normalized()
     rotation = quaternion_rotation(coefficients)
-    np.testing.assert_allclose(rotation, quaternion.toRotationMatrix(), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(rotation, quaternion.toRotationMatrix(), rtol=0, atol=4e-15)
     np.testing.assert_allclose(rotation_quaternion(rotation),
                                pin.Quaternion(rotation).coeffs(), rtol=0, atol=1e-15)
     back = rotation_quaternion(rotation)
     assert min(np.abs(back - quaternion.coeffs()).max(),
                np.abs(back + quaternion.coeffs()).max()) < 1e-14
+
+
+def pinocchio_decision(model, q, dq, progressive):
+    """A ball joint's decision written with Pinocchio's SO(3) maps, as before the compiled
+    ball_fix, and without its _may_reach shortcut: (variation fixed (rad, 3), h (3)), or
+    None when the swing / twist rule leaves the move alone."""
+    rotation = pin.Quaternion(q[model.q_slice]).normalized().toRotationMatrix()
+    s, theta = swing_twist(rotation)
+    altered, target, swing_h, twist_h = _altered(
+        model.rule, s, theta, model.domain.signed_distance(s),
+        rotation @ pin.exp3(dq[model.v_index]), progressive)
+    if not altered:
+        return None
+    return pin.log3(rotation.T @ target), np.array([swing_h, swing_h, twist_h])
+
+
+@pytest.mark.parametrize("progressive", [True, False])
+@PROPERTY
+@given(seed=SEEDS)
+def test_compiled_ball_decisions_are_the_pinocchio_ones(mannequin, limit_models, progressive,
+                                                       seed):
+    """ball_fix (BallLimit.decide) takes the decision written with Pinocchio's exp3, log3
+    and quaternions, on every joint of the mannequin from random states inside its limits
+    and random moves (normal, 0.001-0.1 rad per DoF): the same joints fixed, the same
+    variations to 1e-9 rad and h to 1e-12 (the compiled maps agree with Pinocchio's to
+    rounding, not bits)."""
+    rng = np.random.default_rng(seed)
+    decided = 0
+    for _ in range(5):
+        q = mannequin_start(mannequin, limit_models, rng)
+        dq = rng.normal(size=mannequin.model.nv) * rng.uniform(0.001, 0.1)
+        free = np.ones(mannequin.model.nv, dtype=bool)
+        for model in limit_models:
+            expected = pinocchio_decision(model, q, dq, progressive)
+            decision = model.decide(q, dq, free, progressive)
+            assert (expected is None) == (len(decision.index) == 0), model.joint
+            if expected is not None:
+                decided += 1
+                assert list(decision.index) == list(model.v_index)
+                np.testing.assert_allclose(decision.dq, expected[0], rtol=0, atol=1e-9)
+                np.testing.assert_allclose(decision.h, expected[1], rtol=0, atol=1e-12)
+    assert decided > 0
 
 
 def test_ball_decision_fixes_the_joint_on_the_damped_target(mannequin):

@@ -257,10 +257,11 @@ class PIKSolver:
     def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h,
                            bounds=None):
         """_clamping in one compiled call, when the 1-DoF joints, joint groups and
-        spherical joints are the only limit models and the hierarchy is DampedHierarchy, or QPHierarchy (bounds:
-        its (lower, upper)), whose cascades it runs too as long as their hot starts hold:
-        the same kernels in the same order, so the same bits, without the Python around
-        each solution and limit pass. Returns (HierarchySolution, solutions, finished):
+        spherical joints are the only limit models and the hierarchy is DampedHierarchy,
+        or QPHierarchy (bounds: its (lower, upper)), whose cascades it runs too as long as
+        their hot starts hold: the same kernels (the limit models' on disjoint DoFs, so in
+        any order), so the same bits, without the Python around each solution and limit
+        pass. Returns (HierarchySolution, solutions, finished):
         finished, the final one; else the solution whose levels left the bounds
         (QPHierarchy with hot starts off), or whose cascade reached a level for ProxSuite,
         not counted and restartable, fixed, fixed_dq and h as it was solved with, for
@@ -409,8 +410,9 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
                    cascades, cascade_state):
     """PIKSolver._clamping for DampedHierarchy, RevoluteLimits (the indices and table
     of limits.fix_joints), joint groups (swing.group_fix's arguments, or NO_GROUP) and
-    spherical joints (swing.ball_fix's, or NO_BALL) in one call: each solution restarts from the previous one's levels
-    (hierarchy.solve_compiled); fixed, fixed_dq and h (nv) are filled in place.
+    spherical joints (swing.ball_fix's, or NO_BALL) in one call: each solution restarts
+    from the previous one's levels (hierarchy.solve_compiled); fixed, fixed_dq and h (nv)
+    are filled in place.
     lower, upper: QPHierarchy's bounds on dq (nv each; empty: none). A solution whose
     levels leave them (first_level_out_of_bounds), or that starts outside them, is
     QPHierarchy's cascade (qp_hierarchy.cascade_compiled) when `cascades`, with

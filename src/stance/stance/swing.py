@@ -505,9 +505,12 @@ class SwingTwistRule:
 @numba.njit(cache=True)
 def quaternion_rotation(coefficients):
     """Rotation matrix of the quaternion (x, y, z, w) normalized (Eigen's
-    toRotationMatrix), in compiled code."""
+    toRotationMatrix), in compiled code; the identity for a zero quaternion, as Eigen's
+    normalized() leaves it zero."""
     norm = math.sqrt(coefficients[0] ** 2 + coefficients[1] ** 2 + coefficients[2] ** 2
                      + coefficients[3] ** 2)
+    if norm == 0.0:
+        return np.eye(3)
     x, y, z, w = (coefficients[0] / norm, coefficients[1] / norm, coefficients[2] / norm,
                   coefficients[3] / norm)
     tx, ty, tz = 2.0 * x, 2.0 * y, 2.0 * z
@@ -591,8 +594,10 @@ def ball_fix(ball, q, dq, progressive, fixed, fixed_dq, h):
 
 @numba.njit(cache=True)
 def _ball_keep_inside(ball, q, q_next):
-    """BallLimit.keep_inside in one compiled call (ball: ball_fix's)."""
+    """BallLimit.keep_inside in one compiled call (ball: ball_fix's; NO_BALL: nothing)."""
     indices, rule = ball
+    if indices[0] < 0:
+        return
     rotation, s, theta, distance = _ball_state(ball, q)
     following = quaternion_rotation(q_next[indices[0]:indices[0] + 4])
     turn = rotation_log(_product3(rotation.T.copy(), following))
