@@ -27,6 +27,14 @@ def processes(tmp_path):
     group.stop_all()
 
 
+# s a test waits for a node it started to come up: a pik_node's first start after an install
+# or an edit of src/stance compiles its solver (numba, 80-90 s on a 2-core machine with a
+# cold cache; later starts load it in half a second). wait_until returns as soon as the node
+# is up, so a warm start waits no longer; the cold one no longer depends on an earlier test
+# having filled the cache.
+NODE_START_TIMEOUT = 240
+
+
 def wait_until(predicate, timeout, period=0.02, what="condition"):
     """Poll predicate() until it is truthy; fail the test with `what` after timeout seconds."""
     deadline = time.monotonic() + timeout

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import NODE_START_TIMEOUT, wait_until
 from contact_planner_node.conversions import stance_plan_msg
 from helpers.probe import BackgroundNode
 from mcap.reader import make_reader
@@ -81,7 +81,8 @@ def record_flat_steps_run(directory, velocity_scale=VELOCITY_SCALE, trajectory_a
         recorder = group.start("stance", "record", "-o", str(bag), *PIPELINE_TOPICS,
                                name="record")
         probe = PlanPublisher()
-        wait_until(probe.ready, 90, period=0.1, what="the nodes and the recorder")
+        wait_until(probe.ready, NODE_START_TIMEOUT, period=0.1,
+                   what="the nodes and the recorder")
         probe.plan_pub.publish(stance_plan_msg(outcome.plan, scene, robot,
                                                Time(nanoseconds=time.time_ns()).to_msg()))
         wait_until(lambda: any(s.startswith(("done:", "failed:")) for s in probe.statuses),

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from ament_index_python.packages import get_package_share_directory
-from conftest import wait_until
+from conftest import NODE_START_TIMEOUT, wait_until
 from helpers.probe import PikProbe
 from stance_tools.graph import DEFAULT_GRAPH, GraphError, command, load_graph
 from stance_tools.processes import group_exists
@@ -59,7 +59,8 @@ def test_crashed_node_is_restarted_then_given_up(processes, tmp_path):
     try:
         first = wait_until(lambda: started_pids(runner, "pik"), 10, what="pik started")[0]
         assert log_has(runner, "[graph] later: optional, skipped: nodes[1] (later).executable")
-        wait_until(lambda: joint_states_since(probe, 0) > 0, 30, what="/joint_states")
+        wait_until(lambda: joint_states_since(probe, 0) > 0, NODE_START_TIMEOUT,
+                   what="/joint_states")
         assert log_has(runner, "[pik] ")  # node output, prefixed
 
         os.kill(first, signal.SIGKILL)
@@ -89,7 +90,8 @@ def test_sigint_stops_the_default_graph_and_every_child(processes, tmp_path):
     try:
         wait_until(lambda: {"pik_node", "contact_planner_node"} <= set(
             probe.node.get_node_names()), 60, what="both nodes in the ROS graph")
-        wait_until(lambda: joint_states_since(probe, 0) > 0, 30, what="/joint_states")
+        wait_until(lambda: joint_states_since(probe, 0) > 0, NODE_START_TIMEOUT,
+                   what="/joint_states")
         pids = started_pids(runner)  # optional nodes too, when installed
         assert len(started_pids(runner, "pik_node")) == 1 and runner.poll() is None
         assert len(started_pids(runner, "contact_planner_node")) == 1

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import wait_until
+from conftest import NODE_START_TIMEOUT, wait_until
 from geometry_msgs.msg import Pose
 from pik_node.conversions import se3_from_pose_msg
 from pik_node.node import PikNode, fill_pose_msg
@@ -46,7 +46,7 @@ def pik(tmp_path_factory):
     try:
         # each topic is discovered on its own: wait for both streams the tests read
         wait_until(lambda: (probe.status_count() > 10 and probe.latest_joint_state()
-                            is not None) or node.poll() is not None, 60,
+                            is not None) or node.poll() is not None, NODE_START_TIMEOUT,
                    what="pik_node status and joint states")
         assert node.poll() is None, node.log_path.read_text()
         yield node, probe
@@ -267,8 +267,8 @@ def test_node_variants_run_and_report(tmp_path, parameters, check):
                        env={"ROS_DOMAIN_ID": str(domain)})
     probe = PikProbe("variant_probe", domain_id=domain)
     try:
-        wait_until(lambda: probe.status_count() > 5 or node.poll() is not None, 60,
-                   what="pik_node status")
+        wait_until(lambda: probe.status_count() > 5 or node.poll() is not None,
+                   NODE_START_TIMEOUT, what="pik_node status")
         assert node.poll() is None, node.log_path.read_text()
         status = probe.latest_status()
         assert check(status)
@@ -287,8 +287,8 @@ def test_locked_joints_stay_where_the_posture_target_pulls(tmp_path):
                        name="pik_node", env={"ROS_DOMAIN_ID": str(domain)})
     probe = PikProbe("locked_probe", domain_id=domain)
     try:
-        wait_until(lambda: probe.status_count() > 5 or node.poll() is not None, 60,
-                   what="pik_node status")
+        wait_until(lambda: probe.status_count() > 5 or node.poll() is not None,
+                   NODE_START_TIMEOUT, what="pik_node status")
         assert node.poll() is None, node.log_path.read_text()
         names = list(probe.latest_joint_state().name)
         start = np.array(probe.latest_joint_state().position)

@@ -10,7 +10,7 @@ import signal
 import time
 
 import pytest
-from conftest import wait_until
+from conftest import NODE_START_TIMEOUT, wait_until
 from stance.planning.contacts import Plan
 from test_graph import log_has, started_pids, write_graph
 from test_trajectory_node import (JOINT_TOLERANCE, STEPS, TrajectoryProbe, assert_executed,
@@ -49,7 +49,8 @@ def start_pik_and_trajectory(processes, *parameters):
     node = processes.start("trajectory_node", "--ros-args", *arguments, name="trajectory_node")
     probe = TrajectoryProbe()
     try:
-        wait_until(lambda: probe.joint_state is not None and probe.statuses, 60,
+        wait_until(lambda: probe.joint_state is not None and probe.statuses,
+                   NODE_START_TIMEOUT,
                    what="pik_node's joint states and trajectory_node's status")
     except BaseException:   # pytest.fail included
         probe.close()

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import NODE_START_TIMEOUT, wait_until
 from helpers.probe import PikProbe, task_status
 from pik_node.node import fill_pose_msg
 from stance import Robot
@@ -25,8 +25,8 @@ def pik(tmp_path_factory):
     probe = PikProbe("set_configuration_probe")
     client = probe.node.create_client(SetConfiguration, "/pik/set_configuration")
     try:
-        wait_until(lambda: probe.status_count() > 10 or node.poll() is not None, 60,
-                   what="pik_node status")
+        wait_until(lambda: probe.status_count() > 10 or node.poll() is not None,
+                   NODE_START_TIMEOUT, what="pik_node status")
         assert node.poll() is None, node.log_path.read_text()
         yield node, probe, client
     finally:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
-from conftest import wait_until
+from conftest import NODE_START_TIMEOUT, wait_until
 from contact_planner_node.conversions import contact_msg
 from helpers.probe import RELIABLE, BackgroundNode
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -270,7 +270,7 @@ def test_a_late_release_then_a_new_contact_never_switches_on_in_the_graph(proces
     probe = TrajectoryProbe("chair_probe", domain)
     states = GateProbe("chair_gate_probe", domain)
     try:
-        wait_until(lambda: probe.joint_state is not None and probe.statuses, 120,
+        wait_until(lambda: probe.joint_state is not None and probe.statuses, NODE_START_TIMEOUT,
                    what="pik_node's joint states and trajectory_node's status")
         counts = probe.counts()
         probe.publish_plan(plan_msg(robot, chair, short))

@@ -18,7 +18,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
-from conftest import wait_until
+from conftest import NODE_START_TIMEOUT, wait_until
 from contact_planner_node.conversions import stance_plan_msg
 from geometry_msgs.msg import PoseStamped
 from helpers.probe import RELIABLE, BackgroundNode
@@ -192,7 +192,7 @@ def graph(tmp_path_factory):
     probe = TrajectoryProbe()
     try:
         wait_until(lambda: probe.joint_state is not None and probe.statuses
-                   or node.poll() is not None or pik.poll() is not None, 60,
+                   or node.poll() is not None or pik.poll() is not None, NODE_START_TIMEOUT,
                    what="pik_node's joint states and trajectory_node's status")
         assert node.poll() is None, node.log_path.read_text()
         assert pik.poll() is None, pik.log_path.read_text()
@@ -410,7 +410,7 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
     frames = {spot for targets in created.values() for spot in targets} | {"com"}
     probe = TrajectoryProbe("arrival_probe", int(domain["ROS_DOMAIN_ID"]), pik_frames=frames)
     try:
-        wait_until(lambda: probe.frame_log, 120, what="pik_node's status")
+        wait_until(lambda: probe.frame_log, NODE_START_TIMEOUT, what="pik_node's status")
         counts = probe.counts()
         probe.publish_plan(plan_msg(robot, scene, short))
         statuses = probe.wait_status(counts, "done", 120)
@@ -527,7 +527,7 @@ def test_a_stance_not_reached_in_time_stops_the_execution_and_says_what_is_late(
                            name="trajectory_node", env=domain)
     probe = TrajectoryProbe("timeout_probe", int(domain["ROS_DOMAIN_ID"]), pik_frames={"com"})
     try:
-        wait_until(lambda: probe.frame_log, 120, what="pik_node's status")
+        wait_until(lambda: probe.frame_log, NODE_START_TIMEOUT, what="pik_node's status")
         counts = probe.counts()
         probe.publish_plan(plan_msg(robot, scene, short))
         statuses = probe.wait_status(counts, "failed", 90)
