@@ -423,8 +423,8 @@ def test_the_compiled_clamping_loop_gives_the_python_loops_bits(mannequin, limit
     (swing.ball_fix): every step gives the general loop's bits, with the same decisions."""
     start = mannequin_start(mannequin, limit_models, np.random.default_rng(seed))
     compiled, general = (mannequin_run(mannequin, limit_models, start, seed, reachable,
-                                       strategy, one_call=one_call)
-                         for one_call in (True, False))
+                                       strategy, compiled_loop=compiled)
+                         for compiled in (True, False))
     for (q, result), (general_q, expected) in zip(compiled, general):
         assert q.tobytes() == general_q.tobytes()
         assert result.damping.tobytes() == expected.damping.tobytes()

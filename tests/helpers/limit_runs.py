@@ -52,16 +52,17 @@ def mannequin_start(robot, limit_models, rng) -> np.ndarray:
 
 
 def mannequin_run(robot, limit_models, start, seed, reachable, strategy="progressive",
-                  steps=40, one_call=True):
+                  steps=40, compiled_loop=True):
     """(q, StepResult) after each step: left sole > CoM > right hand and right toes toward
-    random targets > posture. one_call: False runs the general (Python) clamping loop."""
+    random targets > posture. compiled_loop: False runs the general (Python) clamping
+    loop (PIKSolver's)."""
     stack = [TaskSpec("left_sole", "pose", frame="left_sole", priority=0, gain=0.5),
              TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
              TaskSpec("right_hand", "position", frame="right_hand", priority=2, gain=0.5),
              TaskSpec("right_toe", "position", frame="right_toe", priority=2, gain=0.5),
              TaskSpec("posture", "posture", priority=3, gain=0.02)]
     return _run(robot, limit_models, stack, start, ("right_hand", "right_toe"), seed,
-                reachable, strategy, steps, one_call)
+                reachable, strategy, steps, compiled_loop)
 
 
 def talos_group_run(robot, groups, seed, reachable, strategy="progressive", steps=40):
@@ -78,11 +79,11 @@ def talos_group_run(robot, groups, seed, reachable, strategy="progressive", step
 
 
 def _run(robot, limit_models, stack, start, moving, seed, reachable, strategy, steps,
-         one_call=True):
+         compiled_loop=True):
     rng = np.random.default_rng(seed)
     solver = PIKSolver(robot, strategy=strategy, limit_models=limit_models,
-                       compiled_loop=one_call)
-    assert solver._one_call_loop == one_call, "the limit models run in the compiled loop"
+                       compiled_loop=compiled_loop)
+    assert solver._one_call_loop == compiled_loop, "the limit models run in the compiled loop"
     solver.set_stack(stack, start)
     for name in moving:
         task = solver.task(name)

@@ -566,9 +566,9 @@ def ball_fix(ball, q, dq, progressive, fixed, fixed_dq, h):
     """BallLimit.fix in one compiled call. ball: BallLimit.kernel_arguments, ((first q
     index, first v index), swing / twist rule); q index -1 fixes nothing (NO_BALL)."""
     indices, rule = ball
-    first = indices[1]
     if indices[0] < 0:
         return False
+    first = indices[1]
     moving = 0.0
     for k in range(3):
         if fixed[first + k]:
