@@ -93,6 +93,34 @@ def test_re_solving_with_more_fixed_joints_matches_a_fresh_solve(problem, untouc
 
 
 @PROPERTY
+@given(hierarchy_problems(), st.lists(st.integers(0, 4), min_size=2, max_size=3))
+def test_a_chain_of_re_solves_matches_fresh_solves(problem, untouched_per_solve):
+    """The clamping loop re-solves several times, each restart at its own level: a later
+    restart higher than an earlier one starts from levels stored before the joints the
+    earlier one fixed (absent from their rows). Every re-solve must give the fresh
+    solution, those joints at their values."""
+    levels, nv, fixed_index, fixed_dq, rng = problem
+    free = np.setdiff1d(np.arange(nv), fixed_index)
+    batch = rng.integers(0, len(untouched_per_solve) + 1, len(free))  # last: never fixed
+    for number, untouched in enumerate(untouched_per_solve):
+        for level in levels[:untouched]:
+            level.jacobian[:, free[batch == number]] = 0.0
+    stacked = stack_levels(levels, nv)     # one problem: restarts need the same arrays
+    hierarchy = DampedHierarchy(damping=DAMPING)
+    index, values = np.asarray(fixed_index, dtype=int), np.asarray(fixed_dq, dtype=float)
+    solution = hierarchy.solve_stacked(*stacked, index, values)
+    for number in range(len(untouched_per_solve)):
+        added = free[batch == number]
+        index = np.concatenate([index, added])
+        values = np.concatenate([values, rng.normal(size=len(added))])
+        solution = hierarchy.solve_stacked(*stacked, index, values, previous=solution)
+        fresh = hierarchy.solve_stacked(*stacked, index, values)
+        assert np.array_equal(solution.dq[index], values)
+        scale = 1.0 + np.abs(fresh.dq).max()
+        np.testing.assert_allclose(solution.dq, fresh.dq, rtol=0, atol=1e-8 * scale)
+
+
+@PROPERTY
 @given(st.lists(st.tuples(st.floats(-1.0, 1.0), st.floats(-1e3, 1e3)), min_size=1,
                 max_size=12))
 def test_largest_fraction_fits_the_limits_and_is_maximal(pairs):

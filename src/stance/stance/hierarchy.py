@@ -251,21 +251,49 @@ def _restart_point(jacobian, offsets, old_fixed, old_values, fixed, values, leve
             if jacobian[row, joint] != 0.0:
                 first = np.searchsorted(offsets, row, side="right") - 1
                 break
-    dq = level_starts[first].copy()
     for joint in axes:
-        dq[joint] = values[joint]
         for level in range(first):
             level_steps[level, joint] = 0.0  # zero but for rounding: those rows ignore it
     if first == level_count:
+        dq = level_starts[first].copy()
+        for joint in axes:
+            dq[joint] = values[joint]
         return first, dq, np.zeros((nv, 0))
-    basis = np.ascontiguousarray(level_bases[first, :, :level_ranks[first]])
+    dq, basis = level_start_state(first, fixed, values, level_bases, level_ranks,
+                                  level_starts, tolerance)
+    return first, dq, basis
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def level_start_state(level, fixed, values, level_bases, level_ranks, level_starts,
+                      tolerance):
+    """(dq, basis) that `level` of a solution starts from with these fixed joints (bool,
+    nv) at `values`: its stored start and basis with every fixed joint at its value and
+    its axis removed. A level above the restart point of a later re-solve keeps what was
+    stored when fewer joints were fixed (a chain of restarts, the second one higher than
+    the first); the joints fixed since are absent from its rows and those above, so their
+    values and axes are all that changed. An axis is still in a basis where its row is
+    non-zero: a fixed joint's row is zeroed, and reflections keep zero rows zero."""
+    dq = level_starts[level].copy()
+    basis = np.ascontiguousarray(level_bases[level, :, :level_ranks[level]])
+    stale = np.zeros(len(fixed), dtype=np.bool_)
+    for joint in range(len(fixed)):
+        if fixed[joint]:
+            dq[joint] = values[joint]
+            for column in range(basis.shape[1]):
+                if basis[joint, column] != 0.0:
+                    stale[joint] = True
+                    break
+    axes = np.flatnonzero(stale)
+    if len(axes) == 0:
+        return dq, basis
     selected = np.zeros((len(axes), basis.shape[1]))
     for index in range(len(axes)):
         selected[index] = basis[axes[index]]
     basis = _nullspace_update(selected, basis, tolerance)
     for joint in axes:
         basis[joint] = 0.0
-    return first, dq, basis
+    return dq, basis
 
 
 @numba.njit(cache=True, fastmath=REORDERING)

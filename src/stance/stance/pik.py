@@ -27,7 +27,7 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from .hierarchy import (DampedHierarchy, HierarchySolution, excludes_zero,
+from .hierarchy import (DampedHierarchy, HierarchySolution, excludes_zero, level_start_state,
                         restartable_solution, solve_compiled, solve_levels)
 from .limits import RevoluteLimits, fix_joints, make_strategy
 from .qp_hierarchy import QPHierarchy, cascade_compiled, empty_cascade_state
@@ -457,9 +457,9 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
         if cascaded and (not cascades or reached[0] < levels):
             if first >= 0:          # the rest of the unconstrained solution to restart from
                 dq = solve_levels(jacobian, target, offsets, first,
-                                  level_starts[first].copy(),
-                                  np.ascontiguousarray(
-                                      level_bases[first, :, :level_ranks[first]]),
+                                  *level_start_state(first, now_fixed, values, level_bases,
+                                                     level_ranks, level_starts,
+                                                     rank_tolerance),
                                   level_steps, residuals, level_bases, level_ranks,
                                   level_starts, damping, rank_tolerance, now_fixed,
                                   no_values, no_values)[0]

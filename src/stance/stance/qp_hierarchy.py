@@ -65,7 +65,7 @@ from proxsuite import proxqp
 from .hierarchy import (REORDERING, DampedHierarchy, HierarchySolution, Level,
                         _damped_least_squares, _free_axes, _nullspace_update,
                         _sparse_rows_product, _times, excludes_zero,
-                        first_level_out_of_bounds, stack_levels)
+                        first_level_out_of_bounds, level_start_state, stack_levels)
 
 QP_TOLERANCE = 1e-9          # ProxSuite eps_abs (eps_rel 0), task and dq units
 # ProxSuite iterations: outer (max_iter) and inner per outer (max_iter_in). The polish only
@@ -405,8 +405,8 @@ def cascade_compiled(jacobian, target, offsets, fixed, values, lower, upper, fir
                 dq[dof] = values[dof]
         basis = _free_axes(fixed)
     else:
-        dq = level_starts[first].copy()
-        basis = np.ascontiguousarray(level_bases[first, :, :level_ranks[first]])
+        dq, basis = level_start_state(first, fixed, values, level_bases, level_ranks,
+                                      level_starts, rank_tolerance)
         residuals[:first] = unconstrained_residuals[:first]
     free = ~fixed
     bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
