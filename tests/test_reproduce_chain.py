@@ -33,6 +33,20 @@ def test_clamping_methods_never_violate_a_limit(runs, strategy):
     assert chain.violating_joints(runs[strategy]) == []
 
 
+def test_the_qp_hierarchy_leaves_the_limits_to_the_strategy():
+    """With hierarchy qp the joint limits are bounds only for the strategies that enforce
+    them: GPM and none leave them as on the SVD hierarchy, the clamping methods never."""
+    runs = chain.run_chain(hierarchy="qp")
+    assert {2, 3} <= set(chain.violating_joints(runs["gpm"]))
+    robot = chain.build_chain()
+    start = np.zeros(robot.model.nq)
+    unlimited = chain.run_strategy(chain.chain_solver(robot, "none", start, "qp"), start,
+                                   chain.STEPS, [])
+    assert chain.violating_joints(unlimited) != []
+    assert chain.violating_joints(runs["clamping"]) == []
+    assert chain.violating_joints(runs["progressive"]) == []
+
+
 def test_progressive_clamping_has_no_over_swing(runs):
     progressive = chain.peak_acceleration_near_limits(runs["progressive"])
     clamping = chain.peak_acceleration_near_limits(runs["clamping"])

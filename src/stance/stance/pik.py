@@ -130,6 +130,8 @@ class PIKSolver:
         self._speed_bound = np.where(usable, speed_step, np.inf) if dt is not None else \
             np.full(len(robot.limited_v_index), np.inf)
         self._no_level_steps = np.zeros((0, robot.model.nv))
+        self._no_position_limit_high = np.full(len(robot.limited_v_index), np.inf)
+        self._no_position_limit_low = -self._no_position_limit_high
         self.tasks = {}
         self._needs_com = False
         self._layout = self._make_layout()
@@ -387,11 +389,15 @@ class PIKSolver:
         return levels, task_errors
 
     def _dq_bounds(self, q):
-        """Per-DoF bounds on dq (nv each): the 1-DoF joint limits, never requiring a start
-        outside them to move further out, and velocity limits over dt; +-inf elsewhere."""
+        """Per-DoF bounds on dq (nv each): the 1-DoF joint limits when the strategy enforces
+        them (none and gpm leave them free, as on the SVD hierarchy), never requiring a
+        start outside them to move further out, and velocity limits over dt; +-inf
+        elsewhere."""
         robot = self.robot
-        return _joint_dq_bounds(q, robot.limited_q_index, robot.limited_v_index, robot.lower,
-                                robot.upper, self._speed_bound, robot.model.nv)
+        lower, upper = (robot.lower, robot.upper) if self.strategy.enforces_limits else \
+            (self._no_position_limit_low, self._no_position_limit_high)
+        return _joint_dq_bounds(q, robot.limited_q_index, robot.limited_v_index, lower,
+                                upper, self._speed_bound, robot.model.nv)
 
     def _within_velocity_limits(self, solution, fixed_dq: np.ndarray) -> tuple:
         """(dq, factor): the solution under the 1-DoF joints' velocity limits over dt, lowest

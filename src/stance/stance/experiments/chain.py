@@ -63,9 +63,11 @@ def build_chain() -> Robot:
     return Robot(model=model, urdf="", floating_base=False)
 
 
-def chain_solver(robot: Robot, strategy: str, q_start) -> PIKSolver:
-    """Solver with the three effector tasks (priorities 0, 1, 2) aimed at TARGETS."""
-    solver = PIKSolver(robot, strategy=strategy, damping=DAMPING, activation=ACTIVATION)
+def chain_solver(robot: Robot, strategy: str, q_start, hierarchy: str = "svd") -> PIKSolver:
+    """Solver with the three effector tasks (priorities 0, 1, 2) aimed at TARGETS, on the
+    SVD or the QP hierarchy (PIKSolver's `hierarchy`)."""
+    solver = PIKSolver(robot, strategy=strategy, damping=DAMPING, activation=ACTIVATION,
+                       hierarchy=hierarchy)
     if strategy == "gpm":
         solver.strategy = GradientProjection(gain=GPM_GAIN)
     specs = [TaskSpec(effector_name(index), "position", effector_name(index), priority=index,
@@ -76,12 +78,13 @@ def chain_solver(robot: Robot, strategy: str, q_start) -> PIKSolver:
     return solver
 
 
-def run_chain(steps: int = STEPS) -> dict:
+def run_chain(steps: int = STEPS, hierarchy: str = "svd") -> dict:
     """{strategy: Trajectory} from the straight chain, same targets for all."""
     robot = build_chain()
     q_start = np.zeros(robot.model.nq)
     counted = [effector_name(index) for index in range(len(TARGETS))]
-    runs = {name: run_strategy(chain_solver(robot, name, q_start), q_start, steps, counted)
+    runs = {name: run_strategy(chain_solver(robot, name, q_start, hierarchy), q_start, steps,
+                               counted)
             for name in STRATEGY_NAMES}
     return runs
 
