@@ -63,8 +63,8 @@ def fix_joints(configuration, variation, indices, table, progressive, fixed, fix
     for j in range(len(q_index)):
         v = v_index[j]
         q, dq = configuration[q_index[j]], variation[v]
-        if fixed[v] or abs(dq) <= NEGLIGIBLE_VARIATION:
-            continue
+        if fixed[v] or (abs(dq) <= NEGLIGIBLE_VARIATION and lower[j] <= q <= upper[j]):
+            continue                # (a joint outside its limits goes back even unmoved)
         q_next = q + dq
         damping, damped_dq = 0.0, 0.0
         if q_next > upper[j]:
