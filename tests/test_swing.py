@@ -22,7 +22,8 @@ from stance.models import MANNEQUIN_LIMIT_FILE, build_mannequin
 from stance.swing import (BallLimit, EllipticCone, LimitFileError, SphericalPolygon,
                           SwingLimit, _altered, damp_swing, load_limit_file, parse_limits,
                           quaternion_rotation, rotation_from_swing_twist, rotation_quaternion,
-                          swing_direction, swing_from_direction, swing_rotation, swing_twist)
+                          swing_direction, swing_direction_jacobian, swing_from_direction,
+                          swing_rotation, swing_twist)
 
 THICKNESS = 0.2
 SWING_TOLERANCE = math.radians(0.5)
@@ -42,6 +43,9 @@ CONE = EllipticCone(1.0, 0.6)
 PENTAGON = SphericalPolygon([direction(angle, azimuth) for angle, azimuth in
                              [(1.1, 0.0), (0.9, 1.3), (0.7, 2.6), (1.0, 3.8), (0.8, 5.0)]])
 DOMAINS = {"cone": CONE, "polygon": PENTAGON}
+# Star-shaped around z, not convex: every other vertex pulled in (reflex vertices).
+STAR = SphericalPolygon([direction(0.8 if k % 2 == 0 else 0.3, k * np.pi / 4)
+                         for k in range(8)])
 
 
 def polygon_boundary(polygon, samples_per_edge=4000) -> np.ndarray:
@@ -64,6 +68,20 @@ def inside_gnomonic(polygon, unit) -> bool:
     edges = np.roll(planar, -1, axis=0) - planar
     cross = edges[:, 0] * (point[1] - planar[:, 1]) - edges[:, 1] * (point[0] - planar[:, 0])
     return bool(np.all(cross >= 0) or np.all(cross <= 0))
+
+
+def inside_gnomonic_any(polygon, unit) -> bool:
+    """Brute-force containment for any simple polygon in the upper hemisphere: crossings of
+    a ray from the gnomonic image of `unit` with the (straight) images of the edges."""
+    if unit[2] <= 0:
+        return False
+    planar = polygon.vertices[:, :2] / polygon.vertices[:, 2:]
+    x, y = unit[:2] / unit[2]
+    inside = False
+    for (x0, y0), (x1, y1) in zip(planar, np.roll(planar, -1, axis=0)):
+        if (y0 > y) != (y1 > y) and x < x0 + (y - y0) * (x1 - x0) / (y1 - y0):
+            inside = not inside
+    return inside
 
 
 def tangent_and_normal(domain, s):
@@ -149,10 +167,63 @@ def test_normal_is_the_direction_of_steepest_approach(name):
                                                     abs=1e-4)
 
 
-def test_polygon_that_is_star_shaped_but_not_convex_is_rejected():
-    star = [direction(0.8 if k % 2 == 0 else 0.3, k * np.pi / 4) for k in range(8)]
-    with pytest.raises(ValueError, match="convex"):
-        SphericalPolygon(star)
+@pytest.mark.parametrize("seed", range(5))
+def test_star_shaped_polygon_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    boundary = polygon_boundary(STAR)
+    for _ in range(60):
+        s = swing_from_direction(direction(rng.uniform(0, 1.2), rng.uniform(0, 2 * np.pi)))
+        unit = swing_direction(s)
+        angles = np.arccos(np.clip(boundary @ unit, -1, 1))
+        inside = inside_gnomonic_any(STAR, unit)
+        assert STAR.contains(s) == inside
+        assert STAR.signed_distance(s) == pytest.approx(
+            angles.min() if inside else -angles.min(), abs=1e-3)
+        closest = swing_direction(STAR.closest_boundary_point(s))
+        assert math.acos(min(1.0, closest @ unit)) == pytest.approx(angles.min(), abs=1e-3)
+
+
+def test_star_shaped_polygon_normal_is_the_steepest_approach_next_to_each_edge():
+    """Near the middle of each edge, reflex or not, normal_at is -grad signed_distance."""
+    eps = 1e-6
+    for edge, (start, end) in enumerate(zip(STAR.vertices, np.roll(STAR.vertices, -1, 0))):
+        middle = (start + end) / np.linalg.norm(start + end)
+        for depth in (0.03, -0.03):
+            s = swing_from_direction(math.cos(depth) * middle
+                                     + math.sin(depth) * STAR.inward_normals[edge])
+            assert STAR.signed_distance(s) == pytest.approx(depth, abs=1e-9)
+            gradient = np.array([(STAR.signed_distance(s + eps * e)
+                                  - STAR.signed_distance(s - eps * e)) / (2 * eps)
+                                 for e in np.eye(2)])
+            assert STAR.normal_at(s) == pytest.approx(-gradient / np.linalg.norm(gradient),
+                                                      abs=1e-4)
+
+
+@pytest.mark.parametrize("polygon, vertices", [(PENTAGON, range(5)), (STAR, range(0, 8, 2))],
+                         ids=["convex", "star tips"])
+def test_normal_next_to_a_convex_vertex_is_between_its_two_edges(polygon, vertices):
+    """A direction 1e-10 rad outside a convex vertex (its closest boundary point) has its
+    outward normal in the cone of the outward normals of the two edges that meet there
+    (mapped back to the sphere's tangent plane), whichever edge found the vertex."""
+    count = len(polygon.vertices)
+    for vertex in vertices:
+        unit = polygon.vertices[vertex]
+        edges = [-polygon.inward_normals[(vertex - 1) % count],
+                 -polygon.inward_normals[vertex]]
+        projected = np.column_stack([n - (n @ unit) * unit for n in edges])
+        outside = unit + 1e-10 * projected.sum(axis=1) / np.linalg.norm(projected.sum(axis=1))
+        s = swing_from_direction(outside / np.linalg.norm(outside))
+        jacobian = swing_direction_jacobian(s)
+        tangent = jacobian @ np.linalg.solve(jacobian.T @ jacobian, polygon.normal_at(s))
+        weights, *_ = np.linalg.lstsq(projected, tangent, rcond=None)
+        assert projected @ weights == pytest.approx(tangent, abs=1e-6)
+        assert np.all(weights > 0.0), vertex
+
+
+def test_polygon_winding_twice_around_the_rest_direction_is_rejected():
+    pentagram = [direction(0.6, k * 4 * np.pi / 5) for k in range(5)]
+    with pytest.raises(ValueError, match="once around z"):
+        SphericalPolygon(pentagram)
 
 
 def test_polygon_not_around_the_rest_direction_is_rejected():
@@ -160,11 +231,12 @@ def test_polygon_not_around_the_rest_direction_is_rejected():
         SphericalPolygon([direction(0.5, 0.0), direction(1.0, 0.3), direction(1.0, -0.3)])
 
 
-def test_polygon_vertex_order_does_not_matter():
-    reversed_pentagon = SphericalPolygon(PENTAGON.vertices[::-1])
+@pytest.mark.parametrize("polygon", [PENTAGON, STAR], ids=["convex", "star"])
+def test_polygon_vertex_order_does_not_matter(polygon):
+    reversed_polygon = SphericalPolygon(polygon.vertices[::-1])
     for s in np.random.default_rng(4).uniform(-1.2, 1.2, (30, 2)):
-        assert reversed_pentagon.signed_distance(s) == pytest.approx(
-            PENTAGON.signed_distance(s))
+        assert reversed_polygon.signed_distance(s) == pytest.approx(
+            polygon.signed_distance(s))
 
 
 # Swing / twist decomposition.

@@ -3,22 +3,26 @@ mannequin's eleven spherical joints and Talos' four joint groups, clamping and p
 clamping, random starts and reachable or unreachable targets. No swing ends a step more
 than 0.5 degrees outside its cone or polygon, no twist beyond its interval by more than
 1e-9 rad, no grouped joint beyond its own bounds by more than 1e-9 rad; on the mannequin
-a swing started outside never moves further out."""
+a swing started outside never moves further out; a star-shaped (non-convex) shoulder
+polygon holds too."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from helpers.limit_runs import (bound_excess, mannequin_run, mannequin_start,
                                 set_swing_twist, swing_excess, talos_group_run,
                                 twist_excess)
 
 from stance.models import MANNEQUIN_LIMIT_FILE, build_mannequin
 from stance.robot import Robot
-from stance.swing import load_limit_file, swing_twist
+from stance.swing import load_limit_file, parse_limits, swing_twist
 
 MANNEQUIN_STEPS = 30_000   # per strategy
 TALOS_STEPS = 20_000       # per strategy: 10^5 steps in all
+STAR_STEPS = 5_000         # progressive clamping, a star-shaped shoulder polygon
 EPISODE_STEPS = 100
 SWING_TOLERANCE = math.radians(0.5)
 TOLERANCE = 1e-9
@@ -56,6 +60,36 @@ def test_mannequin_swings_hold_over_random_steps(strategy):
                 f"seed {seed}: {models[int(np.argmax(following.max(axis=1)))].joint}"
             allowed = np.maximum(np.minimum(allowed, following),
                                  [SWING_TOLERANCE, TOLERANCE])
+
+
+def star_shoulder_models(robot) -> list:
+    """The mannequin's limits with the right shoulder's 8-gon made star-shaped (every
+    other vertex halfway to the rest direction z: reflex vertices)."""
+    document = yaml.safe_load(Path(MANNEQUIN_LIMIT_FILE).read_text())
+    octagon = np.array(document["joints"]["right_shoulder"]["polygon"])
+    octagon /= np.linalg.norm(octagon, axis=1)[:, None]
+    for vertex in range(1, len(octagon), 2):
+        angle = math.acos(octagon[vertex, 2])
+        azimuth = math.atan2(octagon[vertex, 1], octagon[vertex, 0])
+        octagon[vertex] = [math.sin(angle / 2) * math.cos(azimuth),
+                           math.sin(angle / 2) * math.sin(azimuth), math.cos(angle / 2)]
+    document["joints"]["right_shoulder"]["polygon"] = octagon.tolist()
+    return parse_limits(document, robot)
+
+
+def test_a_star_shaped_shoulder_holds_over_random_steps():
+    """The right hand's random targets drive the right shoulder onto a non-convex limit."""
+    robot = build_mannequin()
+    models = star_shoulder_models(robot)
+    shoulder = next(model for model in models if model.joint == "right_shoulder")
+    assert not np.all(shoulder.domain.vertices @ shoulder.domain.inward_normals.T >= 0.0)
+    for seed in range(STAR_STEPS // EPISODE_STEPS):
+        rng = np.random.default_rng(seed)
+        start = mannequin_start(robot, models, rng)
+        for q, _ in mannequin_run(robot, models, start, seed, rng.random() < 0.5,
+                                  "progressive", EPISODE_STEPS):
+            assert swing_excess(shoulder, q) <= SWING_TOLERANCE, seed
+            assert twist_excess(shoulder, q) <= TOLERANCE, seed
 
 
 @pytest.mark.parametrize("strategy", ["clamping", "progressive"])

@@ -244,36 +244,46 @@ def _cross(a, b):
 
 @numba.njit(cache=True)
 def _polygon_closest(direction, vertices, ends, arc_axes):
-    """(closest boundary direction, index of its edge, at a vertex) of a spherical polygon
-    to a unit direction: per edge, the direction projected on its great circle if it falls
-    inside the arc, else the nearer end; the candidate with the largest cosine."""
+    """(closest boundary direction, index of its edge, index of its vertex or -1 inside an
+    edge) of a spherical polygon to a unit direction: per edge, the direction projected on
+    its great circle if it falls inside the arc, else the nearer end; the candidate with
+    the largest cosine. The boundary is the union of the arcs, convex or not."""
     best = vertices[0].copy()
-    best_cosine, best_edge, at_vertex = -2.0, 0, False
+    best_cosine, best_edge, best_vertex = -2.0, 0, -1
     for edge in range(len(vertices)):
         start, end, axis = vertices[edge], ends[edge], arc_axes[edge]
         projected = direction - (direction @ axis) * axis
         length = np.sqrt(projected @ projected)
-        candidate = start
-        vertex = True
+        candidate, vertex = start, edge
         if length > 1e-12:
             projected = projected / length
             if _cross(start, projected) @ axis >= 0.0 and _cross(projected, end) @ axis >= 0.0:
-                candidate, vertex = projected, False
-        if vertex and direction @ end > direction @ start:
-            candidate = end
+                candidate, vertex = projected, -1
+        if vertex >= 0 and direction @ end > direction @ start:
+            candidate, vertex = end, (edge + 1) % len(vertices)
         cosine = direction @ candidate
         if cosine > best_cosine:
-            best, best_cosine, best_edge, at_vertex = candidate.copy(), cosine, edge, vertex
-    return best, best_edge, at_vertex
+            best, best_cosine, best_edge, best_vertex = candidate.copy(), cosine, edge, vertex
+    return best, best_edge, best_vertex
 
 
 @numba.njit(cache=True)
-def _inside_polygon(inward_normals, direction):
-    """Whether a direction lies on the inner side of every edge's great circle."""
-    for normal in inward_normals:
-        if normal[0] * direction[0] + normal[1] * direction[1] + normal[2] * direction[2] < 0.0:
-            return False
-    return True
+def _inside_polygon(vertices, arc_axes, inward_normals, direction):
+    """Whether a unit direction lies inside a spherical polygon star-shaped around z: in
+    the fan triangle (z, v_i, v_i+1) of the sector (azimuths about z from v_i to v_i+1)
+    it falls in, i.e. on the inner side of that sector's edge. z is inside, -z outside."""
+    if direction[0] == 0.0 and direction[1] == 0.0:
+        return direction[2] > 0.0
+    sense = 1.0 if arc_axes[0, 2] > 0.0 else -1.0     # vertices counterclockwise about z
+    count = len(vertices)
+    for edge in range(count):
+        start, end = vertices[edge], vertices[(edge + 1) % count]
+        if sense * (start[0] * direction[1] - start[1] * direction[0]) >= 0.0 and \
+                sense * (end[0] * direction[1] - end[1] * direction[0]) < 0.0:
+            normal = inward_normals[edge]
+            return (normal[0] * direction[0] + normal[1] * direction[1]
+                    + normal[2] * direction[2]) >= 0.0
+    return False
 
 
 @numba.njit(cache=True)
@@ -300,7 +310,7 @@ def _domain_distance(geometry, s):
         closest = _polygon_closest(direction, vertices, ends, arc_axes)[0]
         across = _cross(direction, closest)
         distance = math.atan2(math.sqrt(across @ across), direction @ closest)
-        inside = _inside_polygon(inward_normals, direction)
+        inside = _inside_polygon(vertices, arc_axes, inward_normals, direction)
     return distance if inside else -distance
 
 
@@ -313,12 +323,13 @@ def _domain_normal(geometry, s):
         normal = np.array([closest[0] / axes[0] ** 2, closest[1] / axes[1] ** 2])
     else:
         direction = swing_direction(s)
-        closest, edge, at_vertex = _polygon_closest(direction, vertices, ends, arc_axes)
+        closest, edge, vertex = _polygon_closest(direction, vertices, ends, arc_axes)
         toward = closest - (closest @ direction) * direction  # tangent at s to the limit
         if math.sqrt(toward @ toward) > 1e-9:
-            outward = toward if _inside_polygon(inward_normals, direction) else -toward
-        elif at_vertex:  # on a vertex: between its two edges
-            outward = -(inward_normals[edge] + inward_normals[edge - 1])
+            inside = _inside_polygon(vertices, arc_axes, inward_normals, direction)
+            outward = toward if inside else -toward
+        elif vertex >= 0:  # on a vertex: between the two edges that meet there
+            outward = -(inward_normals[vertex] + inward_normals[vertex - 1])
         else:
             outward = -inward_normals[edge]
         jacobian = swing_direction_jacobian(s)   # its transpose: the distance's gradient
@@ -329,9 +340,11 @@ def _domain_normal(geometry, s):
 
 
 class SphericalPolygon(SwingDomain):
-    """Convex spherical polygon of bone directions (joint frame) containing the rest
-    direction z strictly inside; edges are great-circle arcs between consecutive vertices.
-    Distances are geodesic angles on the unit sphere (rad)."""
+    """Spherical polygon of bone directions (joint frame), convex or star-shaped around the
+    rest direction z: vertices in order about z (either sense), winding once, every edge
+    with z strictly on its inner side (so z sees the whole boundary); edges are
+    great-circle arcs between consecutive vertices. Distances are geodesic angles on the
+    unit sphere (rad)."""
 
     def __init__(self, vertices):
         vertices = np.asarray(vertices, dtype=float)
@@ -349,18 +362,19 @@ class SphericalPolygon(SwingDomain):
                              "not antipodal")
         normals /= lengths[:, None]
         arc_axes = normals.copy()  # start x end: orients each edge's arc
-        if np.sum(normals @ self.vertices.mean(axis=0)) < 0.0:
+        if normals[0] @ Z_AXIS < 0.0:
             normals = -normals  # clockwise vertices: make the normals point inward
-        if np.any(self.vertices @ normals.T < -1e-9):
-            raise ValueError("spherical polygon must be convex with vertices in order")
         if np.any(normals @ Z_AXIS <= 1e-9):
-            raise ValueError("the rest direction z must lie strictly inside the polygon")
+            raise ValueError("the rest direction z must lie strictly on the inner side of "
+                             "every edge: the polygon must be convex or star-shaped around "
+                             "z, with its vertices in order")
+        azimuths = np.arctan2(self.vertices[:, 1], self.vertices[:, 0])
+        turns = np.sum(np.angle(np.exp(1j * (np.roll(azimuths, -1) - azimuths)))) / (2 * np.pi)
+        if abs(abs(turns) - 1.0) > 1e-6:
+            raise ValueError(f"the vertices must go once around z, not {abs(turns):.3g} "
+                             "times")
         self.inward_normals = normals
         self.geometry = (POLYGON, np.zeros(2), self.vertices, following, arc_axes, normals)
-
-    def contains(self, s, tolerance: float = 0.0) -> bool:
-        return bool(np.all(self.inward_normals @ swing_direction(np.asarray(s, dtype=float))
-                           >= -math.sin(tolerance)))
 
 
 @numba.njit(cache=True)
