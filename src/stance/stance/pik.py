@@ -84,7 +84,7 @@ class _Layout:
 class PIKSolver:
     """Prioritized IK for one robot.
 
-    strategy: joint limit strategy name (none, clamping, progressive).
+    strategy: joint limit strategy name (none, gpm, clamping, progressive).
     damping: damped least squares lambda. activation: damping zone thickness (rad).
     dt: if set, joint variations respect the URDF velocity limits over dt seconds.
     hierarchy: the prioritized solver: "svd" (DampedHierarchy, damped least squares),

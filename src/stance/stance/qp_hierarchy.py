@@ -38,9 +38,12 @@ bounds leave until the set is dual feasible, then the most violated bound joins 
 partial steps that keep every multiplier's sign, a dependent one replacing the bound
 their ratio rule names) a bounded number of times. The KKT point is unique (the
 objective is strictly convex), so the result does not depend on where the polish
-started, to within the multiplier tolerance (MULTIPLIER_SLACK); to the bit, a certified
-step is solved once more on every bound it is on (at a degenerate vertex several active
-sets certify it, and each gives the point to rounding).
+started, to within the multiplier tolerance (MULTIPLIER_SLACK); toward the bit, a
+certified step is solved once more on every bound it is on (at a degenerate vertex several
+active sets certify it, and each gives the point to rounding). Which bounds count as on
+it can still follow the path in the last bits: a solver with a history and a fresh one
+given the same input agree to about 1e-12 (34 of 1,800 Talos steps differed, by at most
+8e-13 rad), while the same input and the same kept sets give the same bits.
 
 Where the hot start fails (or there is none) a persistent ProxSuite dense QP (one per
 level and size) is updated and warm-started from its previous result, cold started when
@@ -49,8 +52,8 @@ ProxSuite's max_iter alone caps only the outer ones, and a warm start once ran 4
 iterations, 120 ms). Its duals seed the polish; where that finds no KKT point either, an
 exact primal active-set method from y = 0 gives the level's step. The active set found is
 kept for the next hot start, and the compiled cascade solves the level again from it, so
-that a level's step comes out of the same code, hence the same bits, whichever way its
-active set was found (where that re-solve finds no KKT point, the step found is kept).
+that a level's step comes out of the same code whichever way its active set was found
+(where that re-solve finds no KKT point, the step found is kept).
 """
 
 from __future__ import annotations
@@ -524,16 +527,21 @@ def _level_bounds(basis, dq, bounded, lower, upper):
     out)."""
     count = 0
     dofs = np.empty(len(bounded), dtype=np.int64)
-    for dof in bounded:
-        if np.sqrt(np.sum(basis[dof] * basis[dof])) > MOVABLE_ROW_NORM:
+    for dof in bounded:             # scalar loops: no temporary array per DoF
+        square = 0.0
+        for column in range(basis.shape[1]):
+            square += basis[dof, column] * basis[dof, column]
+        if np.sqrt(square) > MOVABLE_ROW_NORM:
             dofs[count] = dof
             count += 1
     dofs = dofs[:count]
     rows = np.empty((count, basis.shape[1]))
+    low, high = np.empty(count), np.empty(count)
     for index in range(count):
-        rows[index] = basis[dofs[index]]
-    low = np.minimum(lower[dofs] - dq[dofs], 0.0)
-    high = np.maximum(upper[dofs] - dq[dofs], 0.0)
+        dof = dofs[index]
+        rows[index] = basis[dof]
+        low[index] = min(lower[dof] - dq[dof], 0.0)
+        high[index] = max(upper[dof] - dq[dof], 0.0)
     return dofs, rows, low, high
 
 
