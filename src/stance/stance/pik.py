@@ -30,12 +30,12 @@ import pinocchio as pin
 from .hierarchy import (DampedHierarchy, HierarchySolution, excludes_zero, level_start_state,
                         restartable_solution, solve_compiled, solve_levels)
 from .limits import RevoluteLimits, fix_joints, make_strategy
-from .qp_hierarchy import QPHierarchy, cascade_compiled, empty_cascade_state
+from .qp_hierarchy import Inequalities, QPHierarchy, cascade_compiled, empty_cascade_state
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
 from .swing import NO_BALL, NO_GROUP, BallLimit, JointGroupLimit, ball_fix, group_fix
-from .tasks import (ComTask, FrameTask, FrameTaskBatch, capped_steps, make_task,
-                    step_cap_groups)
+from .tasks import (ComTask, FrameTask, FrameTaskBatch, SupportTask, capped_steps,
+                    make_task, step_cap_groups)
 
 
 @dataclass
@@ -79,6 +79,7 @@ class _Layout:
     row_group: np.ndarray       # step cap group per row (Task.step_caps)
     group_cap: np.ndarray       # norm cap per group (task units per step)
     error_norms: np.ndarray     # filled per step: |e| per task, then |sqrt(w) e| per level
+    support_tasks: list         # (enabled SupportTask, its level index): inequality rows
 
 
 class PIKSolver:
@@ -170,7 +171,12 @@ class PIKSolver:
         their targets; new tasks hold their value at q. On error nothing changes."""
         specs = validate_stack(specs, self.robot.model.existFrame)
         tasks = {spec.name: make_task(spec, self.robot) for spec in specs}
-        needs_com = any(isinstance(task, ComTask) for task in tasks.values())
+        for task in tasks.values():
+            if isinstance(task, SupportTask) and \
+                    not getattr(self.hierarchy, "uses_inequalities", False):
+                raise StackError(f"task {task.name!r}: kind support is an inequality, which "
+                                 "only the qp hierarchy solves (hierarchy: qp)")
+        needs_com = any(isinstance(task, (ComTask, SupportTask)) for task in tasks.values())
         self.compute_kinematics(q, com=needs_com)  # raises on a bad q before any change
         previous, self.tasks = self.tasks, tasks
         self._needs_com = needs_com
@@ -207,18 +213,19 @@ class PIKSolver:
         if extra:
             jacobian, target, offsets = _append_levels(jacobian, target, offsets, extra)
         bounds = self._dq_bounds(q) if self._uses_bounds else None
+        inequalities = self._support_inequalities()
         nv = robot.model.nv
         fixed = np.zeros(nv, dtype=bool)
         fixed[self._locked_v] = True        # at 0, like a clamped joint, from the start
         fixed_dq = np.zeros(nv)
         h = np.zeros(nv)
         solution, iterations, finished = None, 0, False
-        if self._one_call_loop and self.strategy.enforces_limits:
+        if self._one_call_loop and self.strategy.enforces_limits and inequalities is None:
             solution, iterations, finished = self._compiled_clamping(
                 q, jacobian, target, offsets, fixed, fixed_dq, h, bounds)
         if not finished:    # the general loop, or on from a compiled solution out of bounds
             solution, more = self._clamping(q, jacobian, target, offsets, bounds, fixed,
-                                            fixed_dq, h, solution)
+                                            fixed_dq, h, solution, inequalities)
             iterations += more
 
         dq, scale = self._within_velocity_limits(solution, fixed_dq)
@@ -237,18 +244,21 @@ class PIKSolver:
                           binding_constraints=solution.binding)
 
     def _clamping(self, q, jacobian, target, offsets, bounds, fixed, fixed_dq, h,
-                  solution=None):
+                  solution=None, inequalities=None):
         """Step 3 (module docstring) for any hierarchy, limit models and strategy: the
         final HierarchySolution and how many solutions it took; fixed, fixed_dq and h (nv
         each) filled in place. solution: a restartable one with these fixed joints (the
-        compiled loop's), which the first solve restarts from."""
+        compiled loop's), which the first solve restarts from. inequalities: the support
+        tasks' (QPHierarchy's Inequalities), None without any."""
         iterations = 0
+        rows = {} if inequalities is None else {"inequalities": inequalities}
         while True:
             index = fixed.nonzero()[0]
             restart = {} if getattr(solution, "restart", None) is None else \
                 {"previous": solution}  # re-solve only the levels the new fixes touch
             solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
-                                                    fixed_dq[index], bounds=bounds, **restart)
+                                                    fixed_dq[index], bounds=bounds, **restart,
+                                                    **rows)
             iterations += 1
             changed = False
             for model in self.limit_models:
@@ -334,7 +344,7 @@ class PIKSolver:
         error = self._error = np.zeros(row_count)
         self._target = np.zeros(row_count)
         others, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
-        gains = []
+        gains, support = [], []
         row = 0
         for task in enabled:
             if not priorities or priorities[-1] != task.priority:
@@ -343,6 +353,8 @@ class PIKSolver:
                 priorities.append(task.priority)
                 level_tasks.append([])
             level_tasks[-1].append(task.name)
+            if isinstance(task, SupportTask):
+                support.append((task, len(priorities) - 1))
             scale = float(np.sqrt(task.weight))
             if not isinstance(task, FrameTask):
                 rows = slice(row, row + task.dimension)
@@ -360,7 +372,8 @@ class PIKSolver:
                                       [starts[index] for index in frames]),
                        others, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
-                       *step_cap_groups(enabled), np.zeros(len(enabled) + len(priorities)))
+                       *step_cap_groups(enabled), np.zeros(len(enabled) + len(priorities)),
+                       support)
 
     def _fill_levels(self, q):
         """Write every enabled task's rows into the stacked Jacobian, error and target
@@ -386,7 +399,28 @@ class PIKSolver:
         for task in layout.disabled_tasks:
             _, task_error = task.jacobian_and_error(self.robot, q)
             task_errors[task.name] = float(np.linalg.norm(task_error))
+        for task in self.tasks.values():
+            if isinstance(task, SupportTask):   # an inequality: its distance outside
+                task_errors[task.name] = task.distance_outside(self.robot)
         return levels, task_errors
+
+    def _support_inequalities(self):
+        """The enabled support tasks' Inequalities at robot.data's kinematics (None without
+        a polygon): each polygon edge a row of its task's level."""
+        tasks = [(task, level) for task, level in self._layout.support_tasks
+                 if task.edge_count]
+        if not tasks:
+            return None
+        count = sum(task.edge_count for task, _ in tasks)
+        rows, room = np.empty((count, self.robot.model.nv)), np.empty(count)
+        levels, labels, start = [], [], 0
+        for task, level in tasks:
+            end = start + task.edge_count
+            task.write_inequalities(self.robot, rows[start:end], room[start:end])
+            levels += [level] * task.edge_count
+            labels += [f"{task.name} edge {edge}" for edge in range(task.edge_count)]
+            start = end
+        return Inequalities(rows, room, np.array(levels, dtype=np.int64), labels)
 
     def _dq_bounds(self, q):
         """Per-DoF bounds on dq (nv each): the 1-DoF joint limits when the strategy enforces

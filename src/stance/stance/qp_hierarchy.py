@@ -120,6 +120,19 @@ def robot_velocity_steps(robot, dt: float | None) -> np.ndarray:
     return steps
 
 
+class Inequalities(NamedTuple):
+    """Rows of the levels' inequalities rows @ dq <= room (task units, e.g. m), each
+    declared by one level: that level meets it as well as it can (the square of its
+    violation joins the level's objective), and every level below keeps it as that level
+    left it (no further out). Where the levels' damped least squares steps keep every row
+    from its level on, they are the answer (QPHierarchy._row_cascade)."""
+
+    rows: np.ndarray     # m x nv
+    room: np.ndarray     # m
+    level: np.ndarray    # m, int64: the level that declares the row
+    labels: list         # m names for the binding report, e.g. "balance edge 0"
+
+
 class KeptActiveSets(NamedTuple):
     """The active sets cascades ended with, per level, for up to MAX_KEPT_SETS patterns of
     fixed DoFs (slots): the clamping loop's solutions of one step fix different joints, and
@@ -163,6 +176,7 @@ class QPHierarchy:
     """
 
     uses_bounds = True
+    uses_inequalities = True   # solve_stacked takes the levels' Inequalities
 
     def __init__(self, damping: float = 1e-3, rank_tolerance: float = 1e-9, dof_names=None,
                  velocity_steps=None, hot_start: bool = True):
@@ -188,6 +202,8 @@ class QPHierarchy:
         self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
         self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of the kept sets
         self._bound_labels = []   # "<dof> lower|upper|velocity", 3 per DoF (_binding_codes)
+        self._row_sides = {}      # level -> (side per DoF, side per inequality row): the
+        #                           active set _row_level_step ended with, hot start
 
     @classmethod
     def for_robot(cls, robot, dt: float | None = None, **options) -> QPHierarchy:
@@ -200,17 +216,25 @@ class QPHierarchy:
         return self.solve_stacked(*stack_levels(levels, nv), fixed_index, fixed_dq, bounds)
 
     def solve_stacked(self, jacobian, target, offsets, fixed_index=(), fixed_dq=(),
-                      bounds=None, previous=None) -> HierarchySolution:
+                      bounds=None, previous=None, inequalities=None) -> HierarchySolution:
         """Levels stacked by stack_levels(); fixed DoFs dq[fixed_index] = fixed_dq come first,
         then bounds = (lower, upper) per DoF (nv each, +-inf where unbounded) on the others
-        (a free DoF whose bounds exclude 0 starts on the nearer one). previous: as for
-        DampedHierarchy.solve_stacked (used when it came from the unconstrained solve)."""
+        (a free DoF whose bounds exclude 0 starts on the nearer one) and the levels'
+        Inequalities, if any. previous: as for DampedHierarchy.solve_stacked (used when it
+        came from the unconstrained solve)."""
         nv = jacobian.shape[1]
         free = np.ones(nv, dtype=bool)
         free[np.asarray(fixed_index, dtype=int)] = False
         lower, upper = _checked_bounds(bounds, nv)
         level_count, fixed = len(offsets) - 1, ~free
+        if inequalities is not None and not len(inequalities.room):
+            inequalities = None
+        if inequalities is not None:
+            _check_inequalities(inequalities, nv, level_count)
         if excludes_zero(fixed, lower, upper):  # 0 is out: no level is kept
+            if inequalities is not None:
+                return self._row_cascade(jacobian, target, offsets, fixed_index, fixed_dq,
+                                         lower, upper, inequalities)
             return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free,
                                  lower, upper)
         state = getattr(previous, "restart", None)
@@ -218,15 +242,128 @@ class QPHierarchy:
         # restart level, starts included (without the new joints' values): usable when
         # none of them crosses a bound, then the first crossing level is a re-solved one
         usable = state is None or np.array_equal(state.fixed, fixed) or \
-            first_level_out_of_bounds(state.level_starts, state.fixed, lower,
-                                      upper) == level_count
+            self._first_level_out(state.level_starts, state.fixed, lower, upper,
+                                  inequalities) == level_count
         solution = self.unconstrained.solve_stacked(jacobian, target, offsets, fixed_index,
                                                     fixed_dq, previous=previous)
-        first = first_level_out_of_bounds(solution.restart.level_starts, fixed, lower, upper)
+        first = self._first_level_out(solution.restart.level_starts, fixed, lower, upper,
+                                      inequalities)
         if first == level_count:
             return solution
+        if inequalities is not None:
+            return self._row_cascade(jacobian, target, offsets, fixed_index, fixed_dq, lower,
+                                     upper, inequalities, solution if usable else None,
+                                     first if usable else 0)
         return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
                              upper, solution if usable else None, first if usable else 0)
+
+    @staticmethod
+    def _first_level_out(level_starts, fixed, lower, upper, inequalities):
+        """The first level whose dq leaves the bounds or an inequality row
+        (first_level_out_of_bounds, _first_level_out_of_rows), the level count if none."""
+        first = first_level_out_of_bounds(level_starts, fixed, lower, upper)
+        if inequalities is None:
+            return first
+        return min(first, _first_level_out_of_rows(level_starts, inequalities))
+
+    def _row_cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, lower, upper,
+                     inequalities, unconstrained=None, first=0) -> HierarchySolution:
+        """The cascade with inequality rows, level by level in Python: from level 0, or
+        from `first` of the unconstrained solution, whose levels above it keep the bounds
+        and rows. A level's own rows get a slack each (their violation squared joins its
+        objective); the rows of the levels above keep the room those levels left."""
+        nv, level_count = jacobian.shape[1], len(offsets) - 1
+        fixed, values = np.zeros(nv, dtype=bool), np.zeros(nv)
+        fixed[np.asarray(fixed_index, dtype=int)] = True
+        values[np.asarray(fixed_index, dtype=int)] = fixed_dq
+        residuals = np.zeros(level_count)
+        if unconstrained is None:
+            first = 0
+            dq = np.where(fixed, values, np.minimum(np.maximum(0.0, lower), upper))
+            basis = _free_axes(fixed)
+        else:
+            state = unconstrained.restart
+            dq, basis = level_start_state(first, fixed, values, state.level_bases,
+                                          state.level_ranks, state.level_starts,
+                                          self.rank_tolerance)
+            dq = dq.copy()
+            residuals[:first] = unconstrained.step_residuals[:first]
+        bounded = np.flatnonzero(~fixed & (np.isfinite(lower) | np.isfinite(upper)))
+        enforced = np.zeros(nv, dtype=bool)
+        room = inequalities.room.copy()
+        for level in range(first, level_count):
+            rows = jacobian[offsets[level]:offsets[level + 1]]
+            wanted = target[offsets[level]:offsets[level + 1]]
+            if basis.shape[1]:
+                projected = np.ascontiguousarray(rows @ basis)
+                step, dofs = self._row_level_step(level, projected, wanted - rows @ dq, basis,
+                                                  dq, bounded, lower, upper, inequalities,
+                                                  room)
+                enforced[dofs] = True
+                dq += basis @ step
+                if level < level_count - 1 and len(rows):
+                    basis = _nullspace_update(projected, basis, self.rank_tolerance)
+            own = inequalities.level == level   # the levels below keep what this one left
+            room[own] = np.maximum(room[own], inequalities.rows[own] @ dq)
+            residuals[level] = np.linalg.norm(wanted - rows @ dq)
+        reach = inequalities.rows @ dq
+        binding = self._binding_names(dq, enforced, lower, upper) + [
+            label for label, row_reach, row_room in zip(inequalities.labels, reach,
+                                                        inequalities.room)
+            if row_reach >= row_room - BINDING_TOLERANCE]
+        return HierarchySolution(dq=dq, step_residuals=residuals, binding=binding)
+
+    def _row_level_step(self, level, projected, residual, basis, dq, bounded, lower, upper,
+                        inequalities, room):
+        """(y, DoFs of the bounds it is on) of one level of _row_cascade: variables y and a
+        slack w per own row (w = shortfall + w', so that 0 is feasible), minimizing
+        |P y - r|^2 + |w|^2 + lambda^2 (|y|^2 + |w'|^2) subject to the DoF bounds, the rows
+        of the levels above within their room, own rows - w within theirs. The damped
+        least squares step where it keeps them all (DampedHierarchy's step), else the QP."""
+        dofs, bound_rows, low, high = _level_bounds(basis, dq, bounded, lower, upper)
+        declared = inequalities.level <= level
+        own = inequalities.level[declared] == level
+        row_room = room[declared] - inequalities.rows[declared] @ dq
+        shortfall = np.maximum(-row_room[own], 0.0)
+        variables, slacks, equalities = basis.shape[1], len(shortfall), len(residual)
+        design = np.zeros((equalities + slacks, variables + slacks))
+        design[:equalities, :variables] = projected
+        design[equalities:, variables:] = np.eye(slacks)
+        wanted = np.concatenate([residual, -shortfall])
+        constraint = np.zeros((len(dofs) + len(row_room), variables + slacks))
+        constraint[:len(dofs), :variables] = bound_rows
+        constraint[len(dofs):, :variables] = inequalities.rows[declared] @ basis
+        constraint[len(dofs) + np.flatnonzero(own), variables + np.arange(slacks)] = -1.0
+        low = np.concatenate([low, np.full(len(row_room), -np.inf)])
+        high = np.concatenate([high, np.maximum(row_room, 0.0)])
+        step = _damped_least_squares(design, wanted, self.damping * self.damping) \
+            if len(design) else np.zeros(variables + slacks)
+        reach = constraint @ step
+        if np.all((reach >= low) & (reach <= high)):
+            return step[:variables], dofs[:0]
+        dof_sides, row_sides = self._row_sides.get(level, (None, None))
+        if dof_sides is None or len(dof_sides) != len(dq) or \
+                len(row_sides) != len(inequalities.room):
+            dof_sides = np.zeros(len(dq), dtype=np.int8)
+            row_sides = np.zeros(len(inequalities.room), dtype=np.int8)
+            self._row_sides[level] = dof_sides, row_sides
+        declared = np.flatnonzero(declared)
+        status = NO_KKT_POINT
+        if self.hot_start and (dof_sides.any() or row_sides.any()):
+            step, active, upper_side, status = _polish(
+                design, wanted, self.damping, constraint, low, high,
+                *_signed_start(np.concatenate([dof_sides[dofs], row_sides[declared]]), 0, low,
+                               high), _multiplier_slack(design, wanted))
+            self._counters[0] += status == CERTIFIED
+        if status != CERTIFIED:
+            step, active, upper_side = self._qp_rows_step(level, design, wanted, constraint,
+                                                          low, high)
+        sides = np.where(upper_side, 1, -1).astype(np.int8) * active
+        dof_sides[:] = 0
+        dof_sides[dofs] = sides[:len(dofs)]
+        row_sides[:] = 0
+        row_sides[declared] = sides[len(dofs):]
+        return step[:variables], dofs[active[:len(dofs)]]
 
     def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper,
                  unconstrained=None, first=0):
@@ -294,9 +431,19 @@ class QPHierarchy:
         return int(self._counters[0])
 
     def _qp_level_step(self, level, projected, residual, basis, dq, bounded, lower, upper):
-        """(y, DoFs of the active bounds) of a level whose hot start failed: ProxSuite's
-        QP, its duals polished, or the exact active-set method; the active set is kept."""
+        """(y, DoFs of the active bounds) of a level whose hot start failed
+        (_qp_rows_step); the active set is kept."""
         dofs, rows, low, high = _level_bounds(basis, dq, bounded, lower, upper)
+        step, active, upper_side = self._qp_rows_step(level, projected, residual, rows, low,
+                                                      high)
+        _remember(self._active_sides[level], dofs, active, upper_side)
+        self._known_sides[level] = True
+        return step, dofs[active]
+
+    def _qp_rows_step(self, level, projected, residual, rows, low, high):
+        """(y, active row mask, upper-side mask) minimizing |P y - r|^2 + lambda^2 |y|^2
+        subject to low <= rows y <= high (0 feasible): ProxSuite's QP, its duals polished,
+        or the exact active-set method where the polish certifies no KKT point."""
         slack = _multiplier_slack(projected, residual)
         hessian = projected.T @ projected
         hessian[np.diag_indices_from(hessian)] += self.damping * self.damping
@@ -310,9 +457,7 @@ class QPHierarchy:
             step, active, upper_side, converged = _active_set_solve(
                 projected, residual, self.damping, rows, low, high)
             self.unconverged += not converged
-        _remember(self._active_sides[level], dofs, active, upper_side)
-        self._known_sides[level] = True
-        return step, dofs[active]
+        return step, active, upper_side
 
     def _qp_solve(self, level, hessian, gradient, rows, low, high):
         """The level's persistent ProxSuite QP of this size, solved: warm start from its
@@ -365,6 +510,33 @@ def _binding_codes(dq, enforced, lower, upper, velocity_steps):
             codes[count] = 3 * dof + (2 if abs(bound) == velocity_steps[dof] else side)
             count += 1
     return codes[:count]
+
+
+def _check_inequalities(inequalities, nv: int, level_count: int) -> None:
+    """ValueError unless the Inequalities fit nv DoFs and level_count levels, finite."""
+    rows, room, level = inequalities.rows, inequalities.room, inequalities.level
+    count = len(room)
+    if rows.shape != (count, nv) or level.shape != (count,) or \
+            len(inequalities.labels) != count:
+        raise ValueError(f"inequalities: {count} rows need rows {count} x {nv}, one level "
+                         "and one label each")
+    if not (np.all(np.isfinite(rows)) and np.all(np.isfinite(room))):
+        raise ValueError("inequalities contain NaN or infinite values")
+    if np.any((level < 0) | (level >= level_count)):
+        raise ValueError(f"inequality levels must be in 0..{level_count - 1}")
+
+
+def _first_level_out_of_rows(level_starts, inequalities) -> int:
+    """The first level whose dq (level_starts: (levels + 1) x nv, the start then each
+    level's result) leaves an inequality row of its own or of a level above, the level
+    count if none: each row must hold at the end of its level and of every level after."""
+    outside = inequalities.rows @ level_starts.T > inequalities.room[:, None]
+    first = level_starts.shape[0] - 1
+    for row, level in enumerate(inequalities.level.tolist()):
+        later = np.flatnonzero(outside[row, level + 1:])
+        if len(later):
+            first = min(first, level + int(later[0]))
+    return first
 
 
 def _checked_bounds(bounds, nv: int):

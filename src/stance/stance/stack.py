@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import yaml
 
-KINDS = ("pose", "position", "orientation", "com", "posture")
+KINDS = ("pose", "position", "orientation", "com", "posture", "support")
 FRAME_KINDS = ("pose", "position", "orientation")
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 KIND_AXES = {
@@ -22,6 +22,7 @@ KIND_AXES = {
     "orientation": AXES[3:],
     "com": AXES[:3],
     "posture": (),
+    "support": (),
 }
 MAX_PRIORITY = 31
 NAME_PATTERN = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")

@@ -14,6 +14,7 @@ import math
 import numba
 import numpy as np
 import pinocchio as pin
+from scipy.spatial import ConvexHull, QhullError
 
 from .stack import AXES, TaskSpec
 
@@ -347,6 +348,77 @@ class ComTask(Task):
         return pin.SE3(np.eye(3), self.target.copy())
 
 
+class SupportTask(Task):
+    """Center of mass inside a support polygon: an inequality, no equality row.
+
+    The polygon is the convex hull of vertices in the world's xy plane (m), with any safety
+    margin already taken off; until one is set the task constrains nothing. Each edge e
+    (outward unit normal n_e, n_e . p <= b_e inside) gives one row of the level's
+    inequalities n_e^T J_com,xy dq <= room_e, room_e = b_e - n_e . c_xy where that is >= 0;
+    a CoM outside the edge must come back by gain x its distance (room_e < 0), the way a
+    task corrects gain x its error per step. The QP hierarchy keeps these rows from the
+    task's level down (qp_hierarchy.Inequalities); its error is the largest distance
+    outside an edge line (m, 0 inside).
+    """
+
+    max_step = 0.0  # no equality rows to cap
+    max_coordinate = 1e6  # m: |vertex coordinate| accepted
+
+    def __init__(self, spec: TaskSpec, robot):
+        super().__init__(spec, robot)
+        self.rows = np.zeros(0, dtype=np.int64)
+        self.vertices = np.zeros((0, 2))      # hull vertices, counterclockwise
+        self._normals = np.zeros((0, 2))      # outward unit normal per edge
+        self._offsets = np.zeros(0)           # n_e . p <= offset_e inside
+
+    @property
+    def edge_count(self) -> int:
+        return len(self._offsets)
+
+    def hold(self, robot, q) -> None:
+        """A support task has no value to hold: its polygon stays as it is (none at first)."""
+
+    def set_target(self, vertices) -> None:
+        """Set the polygon from >= 3 xy vertices (m, world frame) spanning a nonzero area."""
+        points = require_finite(vertices, f"polygon of task {self.name!r}")
+        if points.ndim != 2 or points.shape[1] != 2 or len(points) < 3:
+            raise TargetError(f"polygon of task {self.name!r} needs >= 3 xy vertices, "
+                              f"got shape {points.shape}")
+        if np.abs(points).max() > self.max_coordinate:
+            raise TargetError(f"polygon of task {self.name!r} has a vertex beyond "
+                              f"{self.max_coordinate:g} m")
+        try:
+            hull = ConvexHull(points)
+        except QhullError as error:
+            raise TargetError(f"polygon of task {self.name!r} has no area (collinear or "
+                              "repeated vertices)") from error
+        self.vertices = points[hull.vertices].copy()
+        self._normals = hull.equations[:, :2].copy()
+        self._offsets = -hull.equations[:, 2].copy()
+
+    def write(self, robot, q, jacobian, error) -> None:
+        """No equality rows."""
+
+    def write_inequalities(self, robot, rows: np.ndarray, room: np.ndarray) -> None:
+        """Fill edge_count rows (nv each) and their room (m) at robot.data's CoM."""
+        data = robot.data
+        rows[:] = self._normals @ data.Jcom[:2]
+        room[:] = self._room(data.com[0][:2])
+
+    def distance_outside(self, robot) -> float:
+        """Largest distance of the CoM's ground projection outside an edge line (m)."""
+        if not self.edge_count:
+            return 0.0
+        return float(max(0.0, np.max(self._normals @ robot.data.com[0][:2] - self._offsets)))
+
+    def _room(self, com_xy) -> np.ndarray:
+        room = self._offsets - self._normals @ com_xy
+        return np.where(room >= 0.0, room, self.gain * room)
+
+    def current_pose(self, robot):
+        return pin.SE3(np.eye(3), robot.data.com[0].copy())
+
+
 class PostureTask(Task):
     """Actuated joint positions (rad); the target is a full configuration vector."""
 
@@ -385,6 +457,7 @@ TASK_CLASSES = {
     "orientation": OrientationTask,
     "com": ComTask,
     "posture": PostureTask,
+    "support": SupportTask,
 }
 
 
