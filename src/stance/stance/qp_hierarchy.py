@@ -202,8 +202,9 @@ class QPHierarchy:
         self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
         self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of the kept sets
         self._bound_labels = []   # "<dof> lower|upper|velocity", 3 per DoF (_binding_codes)
-        self._row_sides = {}      # level -> (side per DoF, side per inequality row): the
-        #                           active set _row_level_step ended with, hot start
+        self._row_sides = {}      # (level, fixed DoFs) -> (side per DoF, side per
+        #                           inequality row): the active set _row_level_step ended
+        #                           with, its next hot start (KeptActiveSets' idea)
 
     @classmethod
     def for_robot(cls, robot, dt: float | None = None, **options) -> QPHierarchy:
@@ -296,9 +297,9 @@ class QPHierarchy:
             wanted = target[offsets[level]:offsets[level + 1]]
             if basis.shape[1]:
                 projected = np.ascontiguousarray(rows @ basis)
-                step, dofs = self._row_level_step(level, projected, wanted - rows @ dq, basis,
-                                                  dq, bounded, lower, upper, inequalities,
-                                                  room)
+                step, dofs = self._row_level_step((level, fixed.tobytes()), projected,
+                                                  wanted - rows @ dq, basis, dq, bounded,
+                                                  lower, upper, inequalities, room)
                 enforced[dofs] = True
                 dq += basis @ step
                 if level < level_count - 1 and len(rows):
@@ -313,13 +314,16 @@ class QPHierarchy:
             if row_reach >= row_room - BINDING_TOLERANCE]
         return HierarchySolution(dq=dq, step_residuals=residuals, binding=binding)
 
-    def _row_level_step(self, level, projected, residual, basis, dq, bounded, lower, upper,
+    def _row_level_step(self, key, projected, residual, basis, dq, bounded, lower, upper,
                         inequalities, room):
         """(y, DoFs of the bounds it is on) of one level of _row_cascade: variables y and a
         slack w per own row (w = shortfall + w', so that 0 is feasible), minimizing
         |P y - r|^2 + |w|^2 + lambda^2 (|y|^2 + |w'|^2) subject to the DoF bounds, the rows
         of the levels above within their room, own rows - w within theirs. The damped
-        least squares step where it keeps them all (DampedHierarchy's step), else the QP."""
+        least squares step where it keeps them all (DampedHierarchy's step), else the QP,
+        hot started from the active set of the last solve with the same key (level, fixed
+        DoFs)."""
+        level = key[0]
         dofs, bound_rows, low, high = _level_bounds(basis, dq, bounded, lower, upper)
         declared = inequalities.level <= level
         own = inequalities.level[declared] == level
@@ -341,12 +345,13 @@ class QPHierarchy:
         reach = constraint @ step
         if np.all((reach >= low) & (reach <= high)):
             return step[:variables], dofs[:0]
-        dof_sides, row_sides = self._row_sides.get(level, (None, None))
-        if dof_sides is None or len(dof_sides) != len(dq) or \
-                len(row_sides) != len(inequalities.room):
+        dof_sides, row_sides = self._row_sides.get(key, (None, None))
+        if dof_sides is None or len(row_sides) != len(inequalities.room):
+            if len(self._row_sides) >= MAX_KEPT_SETS * 4:
+                self._row_sides.clear()
             dof_sides = np.zeros(len(dq), dtype=np.int8)
             row_sides = np.zeros(len(inequalities.room), dtype=np.int8)
-            self._row_sides[level] = dof_sides, row_sides
+            self._row_sides[key] = dof_sides, row_sides
         declared = np.flatnonzero(declared)
         status = NO_KKT_POINT
         if self.hot_start and (dof_sides.any() or row_sides.any()):
