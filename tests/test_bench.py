@@ -1,4 +1,4 @@
-"""`stance bench pik`, `levels` and `groups` run a few steps and report what they promise:
+"""`stance bench pik`, `levels`, `groups` and `support` run a few steps and report what they promise:
 every contender's median, p99 and worst step, and the ratios they exist for."""
 
 import json
@@ -31,6 +31,22 @@ def test_bench_groups_reports_both_limit_sets_and_their_ratio(tmp_path, capsys):
     assert compiled["mean_clamping_iterations"] == general["mean_clamping_iterations"]
     output = capsys.readouterr().out
     assert "arms out" in output and "spherical joints" in output
+
+
+def test_bench_support_compares_the_polygon_with_the_held_com(tmp_path):
+    output = tmp_path / "support.json"
+    assert stance(["bench", "support", "--steps", "30", "--warmup", "300",
+                   "--json", str(output)]) == 0
+    result = json.loads(output.read_text())
+    for scenario in ("hands forward", "reach far"):
+        held, support = result[scenario]["com"], result[scenario]["support"]
+        assert 0 < held["median_us"] <= held["p99_us"] <= held["max_us"]
+        assert 0 < support["median_us"] <= support["p99_us"] <= support["max_us"]
+        assert result[scenario]["ratio"] == support["median_us"] / held["median_us"]
+        assert support["com_outside_m"] < 1e-3
+    # reaching far, a CoM free inside the polygon lets the hands get closer than a held one
+    far = result["reach far"]
+    assert far["support"]["hand_error_m"] < far["com"]["hand_error_m"]
 
 
 def test_bench_levels_compares_each_level_count_with_one_less(tmp_path):

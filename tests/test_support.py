@@ -17,7 +17,7 @@ from stance.pik import PIKSolver
 from stance.qp_hierarchy import Inequalities, QPHierarchy
 from stance.robot import Robot
 from stance.stack import StackError, parse_stack_yaml
-from stance.tasks import TargetError
+from stance.tasks import TargetError, frame_rectangle_corners
 from stance_tools.bench import bench_start
 
 DAMPING = 1e-3
@@ -159,7 +159,7 @@ SUPPORT_STACK = """
 - {name: right_hand, kind: pose, frame: gripper_right_base_link, priority: 2, gain: 0.1}
 - {name: posture, kind: posture, priority: 3, gain: 0.02}
 """
-SOLE_HALF_SIZE = (0.08, 0.04)      # m, a sole rectangle around each sole frame
+SOLE_HALF_SIZE = (0.08, 0.04)      # m, inside Talos' sole patch (0.10, 0.05)
 HAND_PULL = (0.6, -0.6, -0.3)      # m: far out to the front right, below
 SECOND_ORDER = 5e-4                # m: the CoM's excess over one linearized step
 
@@ -172,13 +172,8 @@ def talos():
 def feet_polygon(robot, q) -> np.ndarray:
     """Corners of both sole rectangles in the world's xy plane (m)."""
     pin.framesForwardKinematics(robot.model, robot.data, q)
-    corners = []
-    for frame in ("left_sole_link", "right_sole_link"):
-        placement = robot.data.oMf[robot.model.getFrameId(frame)]
-        for x in (-SOLE_HALF_SIZE[0], SOLE_HALF_SIZE[0]):
-            for y in (-SOLE_HALF_SIZE[1], SOLE_HALF_SIZE[1]):
-                corners.append((placement * np.array([x, y, 0.0]))[:2])
-    return np.array(corners)
+    return frame_rectangle_corners(robot, ("left_sole_link", "right_sole_link"),
+                                   SOLE_HALF_SIZE)
 
 
 def pulled_solver(robot, q, support: bool, polygon=None):

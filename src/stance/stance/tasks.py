@@ -348,6 +348,20 @@ class ComTask(Task):
         return pin.SE3(np.eye(3), self.target.copy())
 
 
+def frame_rectangle_corners(robot, frames, half_size) -> np.ndarray:
+    """Corners in the world's xy plane (m) of the rectangle +-half_size (x, y in m) about
+    each frame's origin in that frame's xy plane, at robot.data's frame placements (call
+    pin.updateFramePlacements first): the soles of standing feet, say, whose hull is their
+    support polygon. Shape (4 x frames, 2)."""
+    half_x, half_y = half_size
+    local = np.array([[x, y, 0.0] for x in (-half_x, half_x) for y in (-half_y, half_y)])
+    corners = []
+    for frame in frames:
+        placement = robot.data.oMf[robot.model.getFrameId(frame)]
+        corners.append((local @ placement.rotation.T + placement.translation)[:, :2])
+    return np.vstack(corners)
+
+
 class SupportTask(Task):
     """Center of mass inside a support polygon: an inequality, no equality row.
 

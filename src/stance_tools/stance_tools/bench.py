@@ -46,6 +46,9 @@ BENCHMARKS = {
     "groups": (__name__, "add_groups_arguments", "run_groups",
                "step cost with Talos' joint groups (hips, shoulders) vs 1-DoF limits only; "
                "the mannequin's spherical joints, compiled vs general clamping loop"),
+    "support": (__name__, "add_levels_arguments", "run_support",
+                "CoM kept inside the feet's support polygon (QP inequality rows) vs CoM "
+                "held as an equality, Talos"),
     "node": ("stance_tools.bench_node", "add_node_arguments", "run_node",
              "pik_node over DDS: loop rate at 500 Hz, target-to-joint_states latency"),
     "interpolate": ("stance_tools.bench_interpolate", "add_interpolate_arguments",
@@ -638,3 +641,93 @@ def spherical_joint_loops(args) -> dict:
               f"{entry['mean_clamping_iterations']:>7.2f}"
               f"{f'{ratio:.2f}' if name == 'compiled loop' else '-':>11}")
     return {**result, "ratio": ratio}
+
+
+# ---------------------------------------------------------------------------------------
+# support: the CoM inside the feet's support polygon (inequality rows) vs held in place
+# ---------------------------------------------------------------------------------------
+
+SOLE_HALF_SIZE = (0.10, 0.05)   # m: Talos' sole patch (data/scenes), about each sole frame
+SUPPORT_SCENARIOS = {   # hand offsets (m, world): the CoM stays inside; it would leave
+    "hands forward": HANDS_FORWARD,
+    "reach far": mirrored_hands((0.7, -0.2, -0.3)),
+}
+
+
+def support_solver(robot, start, targets, dt, balance):
+    """PIKSolver on the QP hierarchy, the issue's stack with its CoM level as `balance`:
+    "com" (CoM xy held, an equality) or "support" (CoM xy inside the soles' hull)."""
+    import pinocchio as pin
+
+    from stance.pik import PIKSolver
+    from stance.stack import TaskSpec, parse_stack_yaml
+    from stance.tasks import frame_rectangle_corners
+
+    specs = [TaskSpec("balance", "support", priority=1, gain=0.2) if spec.kind == "com"
+             and balance == "support" else spec for spec in parse_stack_yaml(TALOS_LEVEL_STACK)]
+    solver = PIKSolver(robot, strategy="progressive", dt=dt, hierarchy="qp")
+    solver.set_stack(specs, start)
+    for spec in specs:
+        if spec.kind == "support":
+            pin.framesForwardKinematics(robot.model, robot.data, start)
+            solver.task(spec.name).set_target(frame_rectangle_corners(
+                robot, ("left_sole_link", "right_sole_link"), SOLE_HALF_SIZE))
+        else:
+            solver.task(spec.name).target = targets[spec.name]
+    return solver
+
+
+def run_support(args) -> int:
+    from threadpoolctl import threadpool_limits
+
+    from stance.robot import Robot
+    from stance.stack import parse_stack_yaml
+
+    talos = Robot.from_example_robot_data("talos")
+    start = bench_start(talos)
+    specs = parse_stack_yaml(TALOS_LEVEL_STACK)
+    results = {}
+    print(f"stance bench support: Talos, QP hierarchy, feet > balance > both hands > posture,"
+          f" progressive clamping, dt {args.dt} s, {args.steps} timed steps after "
+          f"{args.warmup} warm-up, interleaved, one BLAS thread; balance: com = CoM xy held "
+          f"(equality), support = CoM xy inside the soles' hull (inequality rows)")
+    print(f"{'scenario':<15}{'balance':<9}{'median us':>10}{'p99 us':>10}{'max us':>10}"
+          f"{'iters':>7}{'x com':>7}{'hands m':>9}{'outside m':>11}")
+    for scenario, offsets in SUPPORT_SCENARIOS.items():
+        targets = bench_targets(talos, specs, start, offsets)
+        with threadpool_limits(limits=1):
+            contenders = [SolverContender(balance, support_solver(talos, start, targets,
+                                                                  args.dt, balance))
+                          for balance in ("com", "support")]
+            race(contenders, talos, start, args.warmup)
+            records = race(contenders, talos, start, args.steps)
+        result = {}
+        for contender in contenders:
+            record = records[contender.name]
+            final = contender.solver.step(record.q)
+            support = support_solver(talos, start, targets, args.dt, "support")
+            support.compute_kinematics(record.q)
+            result[contender.name] = {
+                **timing_us(record), "mean_clamping_iterations": float(np.mean(
+                    record.iterations)),
+                "hand_error_m": float(np.hypot(final.task_errors["left_hand"],
+                                               final.task_errors["right_hand"])),
+                "com_outside_m": support.task("balance").distance_outside(talos)}
+        result["ratio"] = result["support"]["median_us"] / result["com"]["median_us"]
+        results[scenario] = {"hand_offsets": offsets, **result}
+        for name in ("com", "support"):
+            entry = result[name]
+            ratio = f"{result['ratio']:.2f}" if name == "support" else "-"
+            print(f"{scenario:<15}{name:<9}{entry['median_us']:>10.1f}"
+                  f"{entry['p99_us']:>10.1f}{entry['max_us']:>10.1f}"
+                  f"{entry['mean_clamping_iterations']:>7.2f}{ratio:>7}"
+                  f"{entry['hand_error_m']:>9.3f}{entry['com_outside_m']:>11.1e}")
+    print("hand offsets (m, world): " + "; ".join(
+        f"{scenario} {offsets}" for scenario, offsets in SUPPORT_SCENARIOS.items())
+        + "; hands m: both hands' final position and orientation error; outside m: the final"
+        " CoM's distance outside the soles' hull")
+    if args.json:
+        with open(args.json, "w") as output:
+            json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt, **results},
+                      output, indent=2)
+    return 0
