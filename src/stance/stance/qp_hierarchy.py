@@ -536,12 +536,11 @@ def _first_level_out_of_rows(level_starts, inequalities) -> int:
     level's result) leaves an inequality row of its own or of a level above, the level
     count if none: each row must hold at the end of its level and of every level after."""
     outside = inequalities.rows @ level_starts.T > inequalities.room[:, None]
-    first = level_starts.shape[0] - 1
-    for row, level in enumerate(inequalities.level.tolist()):
-        later = np.flatnonzero(outside[row, level + 1:])
-        if len(later):
-            first = min(first, level + int(later[0]))
-    return first
+    outside &= np.arange(level_starts.shape[0]) > inequalities.level[:, None]
+    found = outside.any(axis=1)
+    if not found.any():
+        return level_starts.shape[0] - 1
+    return int(np.argmax(outside[found], axis=1).min()) - 1   # the level that left it
 
 
 def _checked_bounds(bounds, nv: int):
