@@ -202,9 +202,7 @@ class QPHierarchy:
         self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
         self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of the kept sets
         self._bound_labels = []   # "<dof> lower|upper|velocity", 3 per DoF (_binding_codes)
-        self._row_sides = {}      # (level, fixed DoFs) -> (side per DoF, side per
-        #                           inequality row): the active set _row_level_step ended
-        #                           with, its next hot start (KeptActiveSets' idea)
+        self._row_kept = None     # KeptActiveSets of the row cascade (_kept_row_sets)
 
     @classmethod
     def for_robot(cls, robot, dt: float | None = None, **options) -> QPHierarchy:
@@ -269,10 +267,11 @@ class QPHierarchy:
 
     def _row_cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, lower, upper,
                      inequalities, unconstrained=None, first=0) -> HierarchySolution:
-        """The cascade with inequality rows, level by level in Python: from level 0, or
-        from `first` of the unconstrained solution, whose levels above it keep the bounds
-        and rows. A level's own rows get a slack each (their violation squared joins its
-        objective); the rows of the levels above keep the room those levels left."""
+        """The cascade with inequality rows: from level 0, or from `first` of the
+        unconstrained solution, whose levels above it keep the bounds and rows. Compiled
+        (_row_levels), but for the levels whose hot start fails, which ProxSuite solves
+        here (_qp_rows_step); active sets kept per level and pattern of fixed DoFs, by DoF
+        and by row, as the bounds-only cascade keeps them."""
         nv, level_count = jacobian.shape[1], len(offsets) - 1
         fixed, values = np.zeros(nv, dtype=bool), np.zeros(nv)
         fixed[np.asarray(fixed_index, dtype=int)] = True
@@ -291,22 +290,25 @@ class QPHierarchy:
             residuals[:first] = unconstrained.step_residuals[:first]
         bounded = np.flatnonzero(~fixed & (np.isfinite(lower) | np.isfinite(upper)))
         enforced = np.zeros(nv, dtype=bool)
-        room = inequalities.room.copy()
-        for level in range(first, level_count):
-            rows = jacobian[offsets[level]:offsets[level + 1]]
-            wanted = target[offsets[level]:offsets[level + 1]]
-            if basis.shape[1]:
-                projected = np.ascontiguousarray(rows @ basis)
-                step, dofs = self._row_level_step((level, fixed.tobytes()), projected,
-                                                  wanted - rows @ dq, basis, dq, bounded,
-                                                  lower, upper, inequalities, room)
-                enforced[dofs] = True
-                dq += basis @ step
-                if level < level_count - 1 and len(rows):
-                    basis = _nullspace_update(projected, basis, self.rank_tolerance)
-            own = inequalities.level == level   # the levels below keep what this one left
-            room[own] = np.maximum(room[own], inequalities.rows[own] @ dq)
-            residuals[level] = np.linalg.norm(wanted - rows @ dq)
+        room = inequalities.room.copy()   # relaxed to what each declaring level left
+        kept = self._kept_row_sets(level_count, nv, len(room))
+        slot = _kept_slot(~fixed, *kept)
+        sides, known = kept.sides[slot], kept.known[slot]
+        if not self.hot_start:
+            known[:] = False
+        level, given_step = first, np.zeros(0)
+        while True:
+            level, basis, problem = _row_levels(
+                jacobian, target, offsets, level, dq, basis, bounded, lower, upper,
+                inequalities.rows, room, inequalities.level, sides, known, enforced,
+                residuals, self._counters, self.damping, self.rank_tolerance, given_step)
+            if level == level_count:
+                break
+            design, goal, constraint, low, high, dofs, declared = problem
+            given_step, active, upper_side = self._qp_rows_step(level, design, goal,
+                                                                constraint, low, high)
+            _remember_rows(sides[level], nv, dofs, declared, active, upper_side)
+            known[level] = True
         reach = inequalities.rows @ dq
         binding = self._binding_names(dq, enforced, lower, upper) + [
             label for label, row_reach, row_room in zip(inequalities.labels, reach,
@@ -314,61 +316,18 @@ class QPHierarchy:
             if row_reach >= row_room - BINDING_TOLERANCE]
         return HierarchySolution(dq=dq, step_residuals=residuals, binding=binding)
 
-    def _row_level_step(self, key, projected, residual, basis, dq, bounded, lower, upper,
-                        inequalities, room):
-        """(y, DoFs of the bounds it is on) of one level of _row_cascade: variables y and a
-        slack w per own row (w = shortfall + w', so that 0 is feasible), minimizing
-        |P y - r|^2 + |w|^2 + lambda^2 (|y|^2 + |w'|^2) subject to the DoF bounds, the rows
-        of the levels above within their room, own rows - w within theirs. The damped
-        least squares step where it keeps them all (DampedHierarchy's step), else the QP,
-        hot started from the active set of the last solve with the same key (level, fixed
-        DoFs)."""
-        level = key[0]
-        dofs, bound_rows, low, high = _level_bounds(basis, dq, bounded, lower, upper)
-        declared = inequalities.level <= level
-        own = inequalities.level[declared] == level
-        row_room = room[declared] - inequalities.rows[declared] @ dq
-        shortfall = np.maximum(-row_room[own], 0.0)
-        variables, slacks, equalities = basis.shape[1], len(shortfall), len(residual)
-        design = np.zeros((equalities + slacks, variables + slacks))
-        design[:equalities, :variables] = projected
-        design[equalities:, variables:] = np.eye(slacks)
-        wanted = np.concatenate([residual, -shortfall])
-        constraint = np.zeros((len(dofs) + len(row_room), variables + slacks))
-        constraint[:len(dofs), :variables] = bound_rows
-        constraint[len(dofs):, :variables] = inequalities.rows[declared] @ basis
-        constraint[len(dofs) + np.flatnonzero(own), variables + np.arange(slacks)] = -1.0
-        low = np.concatenate([low, np.full(len(row_room), -np.inf)])
-        high = np.concatenate([high, np.maximum(row_room, 0.0)])
-        step = _damped_least_squares(design, wanted, self.damping * self.damping) \
-            if len(design) else np.zeros(variables + slacks)
-        reach = constraint @ step
-        if np.all((reach >= low) & (reach <= high)):
-            return step[:variables], dofs[:0]
-        dof_sides, row_sides = self._row_sides.get(key, (None, None))
-        if dof_sides is None or len(row_sides) != len(inequalities.room):
-            if len(self._row_sides) >= MAX_KEPT_SETS * 4:
-                self._row_sides.clear()
-            dof_sides = np.zeros(len(dq), dtype=np.int8)
-            row_sides = np.zeros(len(inequalities.room), dtype=np.int8)
-            self._row_sides[key] = dof_sides, row_sides
-        declared = np.flatnonzero(declared)
-        status = NO_KKT_POINT
-        if self.hot_start and (dof_sides.any() or row_sides.any()):
-            step, active, upper_side, status = _polish(
-                design, wanted, self.damping, constraint, low, high,
-                *_signed_start(np.concatenate([dof_sides[dofs], row_sides[declared]]), 0, low,
-                               high), _multiplier_slack(design, wanted))
-            self._counters[0] += status == CERTIFIED
-        if status != CERTIFIED:
-            step, active, upper_side = self._qp_rows_step(level, design, wanted, constraint,
-                                                          low, high)
-        sides = np.where(upper_side, 1, -1).astype(np.int8) * active
-        dof_sides[:] = 0
-        dof_sides[dofs] = sides[:len(dofs)]
-        row_sides[:] = 0
-        row_sides[declared] = sides[len(dofs):]
-        return step[:variables], dofs[active[:len(dofs)]]
+    def _kept_row_sets(self, level_count: int, nv: int, row_count: int) -> KeptActiveSets:
+        """The row cascade's kept active sets: sides per DoF, then per inequality row
+        (emptied when the shape changes: a new stack or polygon)."""
+        kept = self._row_kept
+        if kept is None or kept.sides.shape[1:] != (level_count, nv + row_count) or \
+                kept.free.shape[1] != nv:
+            kept = self._row_kept = KeptActiveSets(
+                np.zeros((MAX_KEPT_SETS, nv), dtype=np.bool_),
+                np.zeros((MAX_KEPT_SETS, level_count, nv + row_count), dtype=np.int8),
+                np.zeros((MAX_KEPT_SETS, level_count), dtype=np.bool_),
+                np.zeros(MAX_KEPT_SETS, dtype=np.int64))
+        return kept
 
     def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper,
                  unconstrained=None, first=0):
@@ -671,6 +630,136 @@ def _cascade_levels(jacobian, target, offsets, level, dq, basis, bounded, lower,
         level += 1
     return level, basis, np.zeros((0, 0)), np.zeros(0)
 
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _row_levels(jacobian, target, offsets, level, dq, basis, bounded, lower, upper, rows,
+                room, row_level, sides, known, enforced, residuals, counters, damping,
+                rank_tolerance, given_step):
+    """QPHierarchy._row_cascade's levels from `level` on, dq, room (own rows relaxed to
+    what their level left), the kept sides (levels x (nv + rows): +1 upper, -1 lower, 0)
+    and known flags, enforced, residuals and counters updated in place, until a level's
+    hot start fails. Per level, variables y and a slack w per own row (w = shortfall + w',
+    0 feasible) minimize |P y - r|^2 + |w|^2 + lambda^2 (|y|^2 + |w'|^2) subject to the
+    DoF bounds, the rows of the levels above within their room and the own rows minus w
+    within theirs: the damped least squares step where it keeps them all (DampedHierarchy's
+    step), else the polish from the kept active set. given_step: `level`'s step when
+    QPHierarchy solved it, polished again from the set kept then (the same code either
+    way), else kept as it is.
+    Returns (that level, or the level count when all are solved; the basis it starts
+    from; its problem (_row_level_problem) for QPHierarchy to solve)."""
+    level_count, nv = len(offsets) - 1, len(dq)
+    while level < level_count:
+        equalities = jacobian[offsets[level]:offsets[level + 1]]
+        wanted = target[offsets[level]:offsets[level + 1]]
+        variables = basis.shape[1]
+        if variables > 0:
+            projected = _sparse_rows_product(equalities, basis) if equalities.shape[0] > 0 \
+                else np.zeros((0, variables))
+            problem = _row_level_problem(projected, wanted - _times(equalities, dq), basis,
+                                         dq, bounded, lower, upper, rows, room, row_level,
+                                         level)
+            design, goal, constraint, low, high, dofs, declared = problem
+            step = _damped_least_squares(design, goal, damping * damping) \
+                if design.shape[0] > 0 else np.zeros(design.shape[1])
+            reach = _times(constraint, step)
+            if not np.all((reach >= low) & (reach <= high)):
+                side = sides[level]
+                signs = np.empty(len(dofs) + len(declared), dtype=np.int8)
+                for index in range(len(dofs)):
+                    signs[index] = side[dofs[index]]
+                for index in range(len(declared)):
+                    signs[len(dofs) + index] = side[nv + declared[index]]
+                active, upper_side = _signed_start(signs, 0, low, high)
+                status = NO_KKT_POINT
+                if known[level]:
+                    polished, active, upper_side, status = _polish(
+                        design, goal, damping, constraint, low, high, active, upper_side,
+                        _multiplier_slack(design, goal))
+                if status == CERTIFIED:
+                    step = polished
+                    _remember_rows(side, nv, dofs, declared, active, upper_side)
+                    if not len(given_step):
+                        counters[0] += 1
+                elif len(given_step):
+                    step = given_step
+                else:
+                    known[level] = False
+                    return level, basis, problem
+                for index in range(len(dofs)):
+                    if active[index]:
+                        enforced[dofs[index]] = True
+            given_step = given_step[:0]
+            dq += _times(basis, step[:variables])
+            if level < level_count - 1 and equalities.shape[0] > 0:
+                basis = _nullspace_update(projected, basis, rank_tolerance)
+        for row in range(len(room)):
+            if row_level[row] == level:
+                reach = 0.0
+                for dof in range(nv):
+                    reach += rows[row, dof] * dq[dof]
+                room[row] = max(room[row], reach)
+        missed = wanted - _times(equalities, dq)
+        residuals[level] = np.sqrt(np.sum(missed * missed))
+        level += 1
+    return level, basis, (np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), np.zeros(0),
+                          np.zeros(0), np.zeros(0, dtype=np.int64),
+                          np.zeros(0, dtype=np.int64))
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _row_level_problem(projected, residual, basis, dq, bounded, lower, upper, rows, room,
+                       row_level, level):
+    """One level of _row_levels as (design, goal, constraint, low, high, dofs, declared):
+    minimize |design x - goal|^2 + lambda^2 |x|^2, x = (y, w'), subject to low <=
+    constraint x <= high; constraint rows: the movable bounded DoFs (dofs), then the rows
+    declared by this level or above (declared, row indices), own rows with -1 on their
+    slack."""
+    dofs, bound_rows, bound_low, bound_high = _level_bounds(basis, dq, bounded, lower, upper)
+    declared = np.flatnonzero(row_level <= level)
+    slacks = int(np.sum(row_level == level))
+    equalities, variables, nv = projected.shape[0], basis.shape[1], len(dq)
+    design = np.zeros((equalities + slacks, variables + slacks))
+    design[:equalities, :variables] = projected
+    goal = np.zeros(equalities + slacks)
+    goal[:equalities] = residual
+    count = len(dofs) + len(declared)
+    constraint = np.zeros((count, variables + slacks))
+    constraint[:len(dofs), :variables] = bound_rows
+    low, high = np.full(count, -np.inf), np.empty(count)
+    low[:len(dofs)] = bound_low
+    high[:len(dofs)] = bound_high
+    slack = 0
+    for index in range(len(declared)):
+        row, position = declared[index], len(dofs) + index
+        reach = 0.0
+        for dof in range(nv):
+            if rows[row, dof] != 0.0:
+                reach += rows[row, dof] * dq[dof]
+                for column in range(variables):
+                    constraint[position, column] += rows[row, dof] * basis[dof, column]
+        left = room[row] - reach
+        high[position] = max(left, 0.0)
+        if row_level[row] == level:
+            constraint[position, variables + slack] = -1.0
+            design[equalities + slack, variables + slack] = 1.0
+            goal[equalities + slack] = -max(-left, 0.0)
+            slack += 1
+    return design, goal, constraint, low, high, dofs, declared
+
+
+@numba.njit(cache=True)
+def _remember_rows(side, nv, dofs, declared, active, upper_side):
+    """Keep a row cascade level's active set in `side` (nv sides per DoF, then one per
+    inequality row: +1 upper, -1 lower, 0 inactive) from the masks over its constraint
+    rows (dofs, then the declared rows)."""
+    side[:] = 0
+    for index in range(len(dofs)):
+        if active[index]:
+            side[dofs[index]] = 1 if upper_side[index] else -1
+    for index in range(len(declared)):
+        position = len(dofs) + index
+        if active[position]:
+            side[nv + declared[index]] = 1 if upper_side[position] else -1
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _level_step(projected, residual, basis, dq, bounded, lower, upper, active_side, known,
