@@ -99,9 +99,12 @@ def bad_pose_targets():
     non_unit = pose_target(_unit_pose())
     non_unit.pose.orientation.w = 0.5
     unknown_frame = pose_target(_unit_pose(), frame_id="no_such_frame")
+    huge = pose_target(_unit_pose())
+    huge.pose.position.x = 1e308  # finite: it passed the NaN checks, residuals read inf
     return {"nan": (nan_position, "NaN"), "inf": (inf_position, "infinite"),
             "non-unit quaternion": (non_unit, "not unit"),
-            "unknown frame": (unknown_frame, "unknown frame")}
+            "unknown frame": (unknown_frame, "unknown frame"),
+            "huge position": (huge, "position x = 1e+308 m is beyond the bound |x| <= 1e+06")}
 
 
 def _unit_pose():
@@ -125,12 +128,15 @@ def test_bad_pose_target_is_rejected_and_changes_nothing(pik, case):
     assert_alive(node, probe)
 
 
-@pytest.mark.parametrize("case", ["nan com", "unknown joint", "length mismatch", "nan joint"])
+@pytest.mark.parametrize("case", ["nan com", "huge com", "unknown joint", "length mismatch",
+                                  "nan joint"])
 def test_bad_com_and_posture_targets_are_rejected(pik, case):
     node, probe = pik
     before = fresh_status(probe)
     if case == "nan com":
         task, msg = "com", point_target(float("nan"), 0.0, 0.8)
+    elif case == "huge com":
+        task, msg = "com", point_target(0.0, -1e308, 0.8)
     else:
         names, positions = {"unknown joint": (["no_such_joint"], [0.1]),
                             "length mismatch": (["arm_right_4_joint"], [0.1, 0.2]),
@@ -139,7 +145,13 @@ def test_bad_com_and_posture_targets_are_rejected(pik, case):
     probe.publish_target(task, msg)
     wait_until(lambda: probe.latest_status().rejected_inputs > before.rejected_inputs, 10,
                what="the rejection in /pik/status")
-    assert task in probe.latest_status().last_rejection
+    reason = probe.latest_status().last_rejection
+    assert task in reason
+    assert reason.count(f"task {task!r}") == 1, reason  # the task named once, not twice
+    if case == "huge com":
+        assert "position y = -1e+308 m is beyond the bound" in reason
+        assert task_status(probe.latest_status(), "com").target == \
+            task_status(before, "com").target
     assert_alive(node, probe)
 
 

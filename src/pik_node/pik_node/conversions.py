@@ -7,14 +7,18 @@ a message meant for the sender; nothing here touches a node.
 from __future__ import annotations
 
 import numpy as np
-from geometry_msgs.msg import Pose
+from geometry_msgs.msg import Point, Pose
 from stance.stack import AXES, KINDS, StackError, TaskSpec
-from stance.tasks import TargetError, pose_from_position_quaternion
+from stance.tasks import TargetError, pose_from_position_quaternion, require_finite
 from stance_msgs.msg import TaskSpec as TaskSpecMsg
 
 import pinocchio as pin
 
 WORLD_FRAMES = ("", "world")
+# m: the largest |x|, |y| or |z| a target or the base may have. Far beyond any workspace,
+# small enough that squares and products of positions stay finite (x = 1e308 passed the
+# NaN checks and then turned every residual and output into inf or NaN).
+MAX_POSITION = 1e6
 KIND_CODES = {
     TaskSpecMsg.KIND_POSE: "pose",
     TaskSpecMsg.KIND_POSITION: "position",
@@ -53,11 +57,30 @@ def check_world_frame(frame_id: str) -> None:
 
 
 def se3_from_pose_msg(pose: Pose) -> pin.SE3:
-    """pin.SE3 from geometry_msgs/Pose (m, unit quaternion); rejects NaN and non-unit q."""
+    """pin.SE3 from geometry_msgs/Pose (m, unit quaternion); rejects NaN, non-unit q and
+    positions beyond MAX_POSITION."""
     position = (pose.position.x, pose.position.y, pose.position.z)
     orientation = (pose.orientation.x, pose.orientation.y, pose.orientation.z,
                    pose.orientation.w)
-    return pose_from_position_quaternion(position, orientation)
+    placement = pose_from_position_quaternion(position, orientation)
+    check_position_bound(position)
+    return placement
+
+
+def point_from_msg(point: Point) -> np.ndarray:
+    """(x, y, z) (m) from a geometry_msgs/Point; rejects NaN and positions beyond
+    MAX_POSITION."""
+    position = require_finite((point.x, point.y, point.z), "position")
+    check_position_bound(position)
+    return position
+
+
+def check_position_bound(position) -> None:
+    """Raise TargetError if a (finite) position has a coordinate beyond MAX_POSITION (m)."""
+    for axis, value in zip("xyz", position):
+        if not abs(value) <= MAX_POSITION:
+            raise TargetError(f"position {axis} = {value:g} m is beyond the bound "
+                              f"|{axis}| <= {MAX_POSITION:g} m")
 
 
 def joint_targets_from_msg(names, positions) -> dict:
@@ -75,9 +98,10 @@ def joint_targets_from_msg(names, positions) -> dict:
 
 def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positions,
                            tolerance: float = 1e-9) -> np.ndarray:
-    """A new configuration (nq): q with the free-flyer at base_pose (world; ignored for a
-    fixed-base robot) and the named actuated 1-DoF joints at positions (rad or m), which
-    must lie inside their limits (within tolerance). Raises TargetError naming the field."""
+    """A new configuration (nq): q with the free-flyer at base_pose (world, within
+    MAX_POSITION; ignored for a fixed-base robot) and the named actuated 1-DoF joints at
+    positions (rad or m), which must lie inside their limits (within tolerance). Raises
+    TargetError naming the field."""
     joints = joint_targets_from_msg(names, positions)
     new_q = np.array(q, dtype=float)
     if robot.floating_base:

@@ -50,8 +50,9 @@ from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
 
-from .conversions import (check_world_frame, configuration_from_msg, joint_targets_from_msg,
-                          se3_from_pose_msg, spec_from_msg)
+from .conversions import (check_world_frame, configuration_from_msg,
+                          joint_targets_from_msg, point_from_msg, se3_from_pose_msg,
+                          spec_from_msg)
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # The per-step outputs: two seconds of history at 500 Hz. A reliable reader whose process
@@ -201,7 +202,7 @@ class PikNode(Node):
                                                                            msg.position))
             elif kind == "com":
                 check_world_frame(msg.header.frame_id)
-                task.set_target((msg.point.x, msg.point.y, msg.point.z))
+                task.set_target(point_from_msg(msg.point))
             else:
                 check_world_frame(msg.header.frame_id)
                 task.set_target(se3_from_pose_msg(msg.pose))
