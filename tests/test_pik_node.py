@@ -1,6 +1,7 @@
 """pik_node over DDS in its own process: targets move the robot, bad input is rejected
 with a reason and changes nothing, the stack can be replaced and tasks toggled."""
 
+import contextlib
 import copy
 import math
 import os
@@ -346,6 +347,78 @@ def test_bad_runtime_strategy_is_refused_and_the_old_one_kept(pik):
     assert not result.successful and "strategy must be one of" in result.reason
     assert fresh_status(probe).strategy == "progressive"
     assert_alive(node, probe)
+
+
+@contextlib.contextmanager
+def local_pik_node():
+    """An in-process pik_node (default robot, its loop not started) in another domain."""
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)
+    try:
+        node = PikNode(context=context)
+        try:
+            yield node
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_a_non_finite_step_is_discarded_and_reported():
+    """An IK step whose configuration is not finite (here a solver made to return NaN) is
+    not committed: the node publishes the previous configuration, counts and explains the
+    discarded step in its status, and goes on with the next finite step."""
+    with local_pik_node() as node:
+        published = {"joints": [], "status": []}
+        node.joint_state_pub.publish = published["joints"].append
+        node.status_pub.publish = lambda msg: published["status"].append(copy.deepcopy(msg))
+        node._tick()
+        q_before = node.q.copy()
+        real_step = node.solver.step
+
+        def nan_step(q):
+            result = real_step(q)
+            result.q = np.full_like(result.q, np.nan)
+            return result
+
+        node.solver.step = nan_step
+        node._tick()
+        node._tick()
+        assert np.array_equal(node.q, q_before)
+        for joint_state in published["joints"][1:]:
+            assert joint_state.position == published["joints"][0].position
+        status = published["status"][-1]
+        assert status.rejected_inputs == 2
+        assert "non-finite configuration" in status.last_rejection
+        assert "2 in a row" in status.last_rejection
+        assert all(math.isfinite(level.residual_norm) for level in status.levels)
+        assert all(math.isfinite(task.error_norm) for task in status.tasks)
+        node.solver.step = real_step
+        node._tick()
+        assert node.discarded_steps == 0 and node.cycles == 4
+        assert np.isfinite(node.q).all()
+
+
+def test_a_configuration_with_non_finite_kinematics_is_refused(monkeypatch):
+    """The last guard of /pik/set_configuration: with the position bound lifted, a base at
+    x = 1e308 passes the message checks but its centre of mass overflows; the request is
+    refused and nothing changes."""
+    from pik_node import conversions
+    from stance_msgs.srv import SetConfiguration
+    monkeypatch.setattr(conversions, "MAX_POSITION", math.inf)
+    with local_pik_node() as node:
+        q_before = node.q.copy()
+        targets = {name: node.solver.task_poses(name)[0] for name in node.solver.tasks}
+        request = SetConfiguration.Request()
+        fill_pose_msg(request.base_pose, q_before[:7])
+        request.base_pose.position.x = 1e308
+        response = node._on_set_configuration(request, SetConfiguration.Response())
+        assert not response.success
+        assert "not finite" in response.message and node.last_rejection == response.message
+        assert np.array_equal(node.q, q_before)
+        for name, target in targets.items():
+            after = node.solver.task_poses(name)[0]
+            assert (after is None and target is None) or after.isApprox(target, 0.0), name
 
 
 def test_a_step_is_stamped_after_the_inputs_it_reflects():

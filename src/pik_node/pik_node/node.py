@@ -121,6 +121,7 @@ class PikNode(Node):
                                              daemon=True)
         self.cycles = 0
         self.overruns = 0
+        self.discarded_steps = 0   # IK steps in a row whose configuration was not finite
         self._status_template = None
         self._hierarchy_name = get("hierarchy").value
         self.get_logger().info(
@@ -249,6 +250,8 @@ class PikNode(Node):
                 q = configuration_from_msg(self.robot, self.q, request.base_pose,
                                            request.joints.name, request.joints.position)
                 self.solver.compute_kinematics(q, com=True)
+                if not (np.isfinite(q).all() and np.isfinite(self.robot.data.com[0]).all()):
+                    raise TargetError("the configuration or its centre of mass is not finite")
                 for task in self.solver.tasks.values():
                     task.hold(self.robot, q)
                 self.q = q
@@ -266,6 +269,17 @@ class PikNode(Node):
         self.rejected_inputs += 1
         self.last_rejection = reason
         self.get_logger().warning(reason)
+
+    def _discard_step(self):
+        """An IK step gave a non-finite configuration: the node keeps (and publishes) the
+        previous one, counts the step as a rejection and logs the first of a streak."""
+        self.discarded_steps += 1
+        self.rejected_inputs += 1
+        self.last_rejection = (f"IK step {self.cycles + 1} gave a non-finite configuration: "
+                               f"discarded, the previous one kept ({self.discarded_steps} "
+                               "in a row)")
+        if self.discarded_steps == 1:
+            self.get_logger().error(self.last_rejection)
 
     # --- IK loop ------------------------------------------------------------------------
 
@@ -296,9 +310,18 @@ class PikNode(Node):
             # received after its stamp (a callback may hold the lock for a while)
             stamp = self.get_clock().now().to_msg()
             result = self.solver.step(self.q)
-            self.q = q = result.q
+            finite = np.isfinite(result.q).all()
+            if finite:
+                self.q = result.q
+                if self.discarded_steps:
+                    self.get_logger().info(f"IK steps finite again after {self.discarded_steps}"
+                                           " discarded")
+                    self.discarded_steps = 0
+            else:
+                self._discard_step()
+            q = self.q
             self.cycles += 1
-            status = self._fill_status(stamp, result)
+            status = self._fill_status(stamp, result if finite else None)
         joint_state = JointState(header=_header(stamp), name=self._joint_names,
                                  position=q[self._joint_q_index].tolist())
         self.joint_state_pub.publish(joint_state)
@@ -310,23 +333,26 @@ class PikNode(Node):
 
     def _fill_status(self, stamp, result) -> SolverStatus:
         """Update the reused status message in place (building it anew each step costs more
-        than the IK step); rebuilt when the stack or an enable flag changes."""
+        than the IK step); rebuilt when the stack or an enable flag changes. result None (a
+        discarded step): the solver's figures of the last kept step stay."""
         if self._status_template is None:
             self._status_template = self._new_status()
         status = self._status_template
         status.header.stamp = stamp
         status.strategy = self.solver.strategy_name
         status.hierarchy = self._hierarchy_name
-        status.binding_constraints = result.binding_constraints
-        status.clamping_iterations = result.clamping_iterations
-        status.solve_time = result.solve_time
         status.cycles = self.cycles
         status.overruns = self.overruns
-        status.damping = result.damping.tolist()
-        status.clamped = result.clamped.tolist()
         status.last_input_stamp = self.last_input_stamp
         status.rejected_inputs = self.rejected_inputs
         status.last_rejection = self.last_rejection
+        if result is None:
+            return status
+        status.binding_constraints = result.binding_constraints
+        status.clamping_iterations = result.clamping_iterations
+        status.solve_time = result.solve_time
+        status.damping = result.damping.tolist()
+        status.clamped = result.clamped.tolist()
         for level_msg, level in zip(status.levels, result.levels):
             level_msg.residual_norm = level.residual_norm
             level_msg.step_residual_norm = level.step_residual_norm
