@@ -130,7 +130,7 @@ def test_bad_pose_target_is_rejected_and_changes_nothing(pik, case):
 
 
 @pytest.mark.parametrize("case", ["nan com", "huge com", "unknown joint", "length mismatch",
-                                  "nan joint"])
+                                  "nan joint", "outside limits"])
 def test_bad_com_and_posture_targets_are_rejected(pik, case):
     node, probe = pik
     before = fresh_status(probe)
@@ -141,7 +141,10 @@ def test_bad_com_and_posture_targets_are_rejected(pik, case):
     else:
         names, positions = {"unknown joint": (["no_such_joint"], [0.1]),
                             "length mismatch": (["arm_right_4_joint"], [0.1, 0.2]),
-                            "nan joint": (["arm_right_4_joint"], [float("nan")])}[case]
+                            "nan joint": (["arm_right_4_joint"], [float("nan")]),
+                            # limits [-2.356, 0]: rejected as /pik/set_configuration does
+                            "outside limits": (["arm_right_1_joint", "arm_right_4_joint"],
+                                               [0.0, 7.0])}[case]
         task, msg = "posture", JointState(name=names, position=positions)
     probe.publish_target(task, msg)
     wait_until(lambda: probe.latest_status().rejected_inputs > before.rejected_inputs, 10,
@@ -149,6 +152,11 @@ def test_bad_com_and_posture_targets_are_rejected(pik, case):
     reason = probe.latest_status().last_rejection
     assert task in reason
     assert reason.count(f"task {task!r}") == 1, reason  # the task named once, not twice
+    if case == "outside limits":
+        assert "arm_right_4_joint = 7.0000 outside its limits [-2.3562, 0.0000]" in reason
+        # taken, the target would raise the posture error by about 7 rad
+        error = task_status(fresh_status(probe), "posture").error_norm
+        assert abs(error - task_status(before, "posture").error_norm) < 1.0
     if case == "huge com":
         assert "position y = -1e+308 m is beyond the bound" in reason
         assert task_status(probe.latest_status(), "com").target == \

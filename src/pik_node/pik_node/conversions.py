@@ -96,6 +96,17 @@ def joint_targets_from_msg(names, positions) -> dict:
     return dict(zip(names, values.tolist()))
 
 
+def check_within_limits(robot, joints: dict, tolerance: float = 1e-9) -> None:
+    """Raise TargetError naming the first of `joints` (name -> position, rad or m) that lies
+    outside its URDF limits by more than tolerance; unlimited and unknown joints pass."""
+    limited = dict(zip(robot.limited_joint_names, zip(robot.lower, robot.upper)))
+    for name, value in joints.items():
+        lower, upper = limited.get(name, (-np.inf, np.inf))
+        if not lower - tolerance <= value <= upper + tolerance:
+            raise TargetError(f"{name} = {value:.4f} outside its limits "
+                              f"[{lower:.4f}, {upper:.4f}]")
+
+
 def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positions,
                            tolerance: float = 1e-9) -> np.ndarray:
     """A new configuration (nq): q with the free-flyer at base_pose (world, within
@@ -110,15 +121,14 @@ def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positio
         except TargetError as error:
             raise TargetError(f"base_pose: {error}") from None
         new_q[:7] = pin.SE3ToXYZQUAT(base)
-    limited = dict(zip(robot.limited_joint_names, zip(robot.lower, robot.upper)))
-    for name, value in joints.items():
+    for name in joints:
         joint = robot.model.joints[robot.model.getJointId(name)] \
             if name in robot.actuated_joint_names else None
         if joint is None or joint.nq != 1:
             raise TargetError(f"joints: unknown actuated 1-DoF joint {name!r}")
-        lower, upper = limited.get(name, (-np.inf, np.inf))
-        if not lower - tolerance <= value <= upper + tolerance:
-            raise TargetError(f"joints: {name} = {value:.4f} outside its limits "
-                              f"[{lower:.4f}, {upper:.4f}]")
-        new_q[joint.idx_q] = value
+        new_q[joint.idx_q] = joints[name]
+    try:
+        check_within_limits(robot, joints, tolerance)
+    except TargetError as error:
+        raise TargetError(f"joints: {error}") from None
     return new_q

@@ -50,7 +50,7 @@ from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
 
-from .conversions import (check_world_frame, configuration_from_msg,
+from .conversions import (check_within_limits, check_world_frame, configuration_from_msg,
                           joint_targets_from_msg, point_from_msg, se3_from_pose_msg,
                           spec_from_msg)
 
@@ -199,8 +199,9 @@ class PikNode(Node):
             task = self.solver.task(name)
             kind = task.spec.kind
             if kind == "posture":
-                task.set_joint_targets(self.robot, joint_targets_from_msg(msg.name,
-                                                                           msg.position))
+                joints = joint_targets_from_msg(msg.name, msg.position)
+                check_within_limits(self.robot, joints)  # as /pik/set_configuration does
+                task.set_joint_targets(self.robot, joints)
             elif kind == "com":
                 check_world_frame(msg.header.frame_id)
                 task.set_target(point_from_msg(msg.point))
