@@ -200,6 +200,13 @@ def malformed_stacks():
         "axis not for kind": (edited(2, axis_mask=TaskSpec.AXIS_RX), "axis"),
         "empty": ([], "empty"),
         "bad name": (edited(3, name="right hand"), "name"),
+        # Pinocchio's frame 0, FIXED_JOINT: nothing moves it, its Jacobian is zero
+        "universe frame": (edited(3, frame="universe"),
+                           "frame 'universe' is fixed in the world"),
+        # the free flyer's JOINT frame: the base is targeted through its body frame
+        "root_joint frame": (edited(3, frame="root_joint"),
+                             "frame 'root_joint' is the free flyer's joint frame, not a body "
+                             "frame: target the base body ('base_link')"),
     }
 
 
@@ -339,6 +346,20 @@ def test_bad_startup_parameter_is_refused_with_its_reason(tmp_path, parameter, r
     try:
         assert node.wait(timeout=60) == 1
         assert reason in node.log_path.read_text()
+    finally:
+        group.stop_all()
+
+
+def test_stack_file_on_a_fixed_frame_is_refused_at_start(tmp_path):
+    stack = tmp_path / "stack.yaml"
+    stack.write_text("- {name: base, kind: pose, frame: universe, priority: 0}\n")
+    group = ProcessGroup(tmp_path)
+    node = group.start("pik_node", "--ros-args", "-p", f"stack_file:={stack}",
+                       name="pik_node")
+    try:
+        assert node.wait(timeout=60) == 1
+        assert "cannot start: task 'base': frame 'universe' is fixed in the world" \
+            in node.log_path.read_text()
     finally:
         group.stop_all()
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 from geometry_msgs.msg import Point, Pose
-from stance.stack import AXES, KINDS, StackError, TaskSpec
+from stance.stack import AXES, FRAME_KINDS, KINDS, StackError, TaskSpec
 from stance.tasks import TargetError, pose_from_position_quaternion, require_finite
 from stance_msgs.msg import TaskSpec as TaskSpecMsg
 
@@ -105,6 +105,30 @@ def check_within_limits(robot, joints: dict, tolerance: float = 1e-9) -> None:
         if not lower - tolerance <= value <= upper + tolerance:
             raise TargetError(f"{name} = {value:.4f} outside its limits "
                               f"[{lower:.4f}, {upper:.4f}]")
+
+
+def check_task_frames(robot, specs) -> None:
+    """Raise StackError for a frame task on a frame that no joint moves (attached to the
+    world: 'universe', Pinocchio's FIXED_JOINT frame 0, and whatever hangs on it; the
+    task's Jacobian would be zero) or on a free flyer's joint frame ('root_joint', a JOINT
+    frame rather than a body: the base is targeted through its body frame). Other problems
+    of the specs are left to the stack's own validation."""
+    model = robot.model
+    for spec in specs:
+        if spec.kind not in FRAME_KINDS or not isinstance(spec.frame, str) \
+                or not model.existFrame(spec.frame):
+            continue
+        frame = model.frames[model.getFrameId(spec.frame)]
+        where = f"task {spec.name!r}: frame {spec.frame!r}"
+        if frame.parentJoint == 0:
+            raise StackError(f"{where} is fixed in the world (no joint moves it): "
+                             f"a {spec.kind} task on it could never act")
+        if robot.floating_base and frame.parentJoint == 1 \
+                and frame.type == pin.FrameType.JOINT:
+            bodies = [body.name for body in model.frames if body.parentJoint == 1
+                      and body.type == pin.FrameType.BODY]
+            raise StackError(f"{where} is the free flyer's joint frame, not a body frame: "
+                             f"target the base body{f' ({bodies[0]!r})' if bodies else ''}")
 
 
 def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positions,

@@ -50,9 +50,9 @@ from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
 
-from .conversions import (check_within_limits, check_world_frame, configuration_from_msg,
-                          joint_targets_from_msg, point_from_msg, se3_from_pose_msg,
-                          spec_from_msg)
+from .conversions import (check_task_frames, check_within_limits, check_world_frame,
+                          configuration_from_msg, joint_targets_from_msg, point_from_msg,
+                          se3_from_pose_msg, spec_from_msg)
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # The per-step outputs: two seconds of history at 500 Hz. A reliable reader whose process
@@ -89,8 +89,9 @@ class PikNode(Node):
             raise StackError(f"no demo stack ships for robot {get('robot').value!r}: "
                              "set the stack_file parameter")
         with open(stack_file) as stream:
-            self.solver.set_stack(parse_stack_yaml(stream.read(), self.robot.model.existFrame),
-                                  self.q)
+            specs = parse_stack_yaml(stream.read(), self.robot.model.existFrame)
+        check_task_frames(self.robot, specs)
+        self.solver.set_stack(specs, self.q)
         self.solver.warm_up(self.q)   # before any service or cycle: no first-step stall
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -216,6 +217,7 @@ class PikNode(Node):
     def _on_set_stack(self, request, response):
         try:
             specs = [spec_from_msg(msg) for msg in request.tasks]
+            check_task_frames(self.robot, specs)
             with self._lock:
                 self.solver.set_stack(specs, self.q)
                 self._status_template = None
