@@ -259,6 +259,38 @@ def test_stack_replacement_and_task_toggle(pik):
     assert all("left_hand" not in level.tasks for level in status.levels)
 
 
+def test_no_enabled_task_is_allowed_with_a_warning(pik):
+    """Disabling the last enabled task, or a stack of disabled tasks only, succeeds with a
+    warning in the response: the solver steps with no level and the robot stays put."""
+    node, probe = pik
+    idle = "warning: no task is enabled"
+    try:
+        for index, name in enumerate(DEMO_TASKS):
+            response = probe.call(probe.set_enabled_client,
+                                  SetTaskEnabled.Request(name=name, enabled=False))
+            assert response.success, response.message
+            assert (idle in response.message) == (index == len(DEMO_TASKS) - 1), \
+                response.message
+        status = fresh_status(probe)
+        assert list(status.levels) == [] and not any(t.enabled for t in status.tasks)
+        still = probe.latest_joint_state().position
+        fresh_status(probe)
+        assert probe.latest_joint_state().position == still
+        assert math.isfinite(max(still))
+        tasks = demo_stack_msgs()
+        for task in tasks:
+            task.enabled = False
+        response = probe.call(probe.set_stack_client, SetStack.Request(tasks=tasks))
+        assert response.success and idle in response.message, response.message
+        assert fresh_status(probe).levels == []
+    finally:
+        response = probe.call(probe.set_stack_client,
+                              SetStack.Request(tasks=demo_stack_msgs()))
+    assert response.success and idle not in response.message, response.message
+    assert len(fresh_status(probe).levels) == 4
+    assert_alive(node, probe)
+
+
 def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
     """The real `stance teleop` process drives the real pik_node through the target topic."""
     node, probe = pik

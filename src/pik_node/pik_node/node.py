@@ -125,6 +125,7 @@ class PikNode(Node):
         self.discarded_steps = 0   # IK steps in a row whose configuration was not finite
         self._status_template = None
         self._hierarchy_name = get("hierarchy").value
+        self._idle_warning()
         self.get_logger().info(
             f"robot {get('robot').value} (nv {self.robot.model.nv}), {len(self.solver.tasks)} "
             f"tasks, strategy {self.solver.strategy_name}, {rate:g} Hz"
@@ -227,7 +228,7 @@ class PikNode(Node):
             return response
         self._sync_target_subscriptions()
         response.success = True
-        response.message = f"stack of {len(specs)} tasks in force"
+        response.message = f"stack of {len(specs)} tasks in force" + self._idle_warning()
         self.get_logger().info(response.message)
         return response
 
@@ -241,8 +242,20 @@ class PikNode(Node):
             self._reject(response.message)
             return response
         response.success = True
-        response.message = f"task {request.name!r} {'enabled' if request.enabled else 'disabled'}"
+        response.message = (f"task {request.name!r} "
+                            f"{'enabled' if request.enabled else 'disabled'}"
+                            + self._idle_warning())
         return response
+
+    def _idle_warning(self) -> str:
+        """A stack whose tasks are all disabled is allowed (the IK steps with no level and
+        the robot stays put): '' if a task is enabled, else a warning, also logged."""
+        if any(task.enabled for task in self.solver.tasks.values()):
+            return ""
+        warning = ("; warning: no task is enabled, nothing drives the robot until one is "
+                   "(/pik/set_task_enabled)")
+        self.get_logger().warning(warning[2:])
+        return warning
 
     def _on_set_configuration(self, request, response):
         """Jump to the requested configuration and hold every task's value there (its
