@@ -311,16 +311,19 @@ def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
     assert np.abs(np.array(probe.latest_joint_state().position) - start).max() > 0.01
 
 
-@pytest.mark.parametrize("parameters, check", [
-    (["-p", "hierarchy:=qp"], lambda status: status.hierarchy == "qp"),
+@pytest.mark.parametrize("parameters, check, logged", [
+    (["-p", "hierarchy:=qp"], lambda status: status.hierarchy == "qp",
+     "limit file: none (URDF bounds only); stack file: "),
     (["-p", "robot:=mannequin", "-p", "rate:=50.0"],
      lambda status: "right_shoulder_swing_x" in status.joint_names
-     and "right_shoulder_twist" in status.joint_names),
+     and "right_shoulder_twist" in status.joint_names,
+     "stance/data/mannequin_limits.yaml; stack file: "),
     (["-p", "limits_file:=talos"],
      lambda status: status.joint_names.count("leg_left_2_joint") == 1
-     and "arm_right_3_joint" in status.joint_names),
+     and "arm_right_3_joint" in status.joint_names,
+     "stance/data/talos_limits.yaml; stack file: "),
 ], ids=["qp hierarchy", "mannequin with swing limits", "talos with joint groups"])
-def test_node_variants_run_and_report(tmp_path, parameters, check):
+def test_node_variants_run_and_report(tmp_path, parameters, check, logged):
     domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200  # away from the module's node
     group = ProcessGroup(tmp_path)
     node = group.start("pik_node", "--ros-args", *parameters, name="pik_node",
@@ -333,6 +336,7 @@ def test_node_variants_run_and_report(tmp_path, parameters, check):
         status = probe.latest_status()
         assert check(status)
         assert len(status.damping) == len(status.joint_names)
+        assert logged in node.log_path.read_text()  # which files the node loaded
     finally:
         probe.close()
         group.stop_all()
@@ -364,11 +368,29 @@ def test_locked_joints_stay_where_the_posture_target_pulls(tmp_path):
         group.stop_all()
 
 
+def test_documented_parameter_overrides_follow_ros_args():
+    """rcl reads `-p name:=value` only after `--ros-args`; before it, the override is
+    silently ignored (`pik_node -p limits_file:=talos` ran without the limit file)."""
+    import pathlib
+    import re
+    root = pathlib.Path(__file__).resolve().parents[1]
+    files = [root / "README.md", *root.glob("docs/**/*.md"), *root.glob("src/*/config/*"),
+             *root.glob("src/stance/stance/data/*.yaml")]
+    bad = [f"{path.relative_to(root)}:{number}: {line.strip()}"
+           for path in files for number, line in enumerate(path.read_text().splitlines(), 1)
+           if re.search(r"(^|\s)-p \w+:=", line)
+           and "--ros-args" not in line.split(" -p ")[0]]
+    assert not bad, "\n".join(bad)
+
+
 @pytest.mark.parametrize("parameter, reason", [
     ("hierarchy:=bogus", "unknown hierarchy"),
     ("strategy:=bogus", "unknown joint limit strategy"),
     ("robot:=no_such_robot", "unknown example-robot-data robot"),
-    ("limits_file:=no_such_robot", "no such limit file, nor a shipped one"),
+    ("limits_file:=no_such_robot", "limits_file: no_such_robot: no such limit file, nor a "
+                                   "shipped one"),
+    ("limits_file:=/no/such.yaml", "limits_file: No such file or directory: /no/such.yaml"),
+    ("stack_file:=/no/such.yaml", "stack_file: No such file or directory: /no/such.yaml"),
     ("locked_joints:=[gripper_left_joint, no_such_joint]",
      "locked_joints[1]: unknown joint 'no_such_joint'"),
 ])
@@ -390,8 +412,8 @@ def test_stack_file_on_a_fixed_frame_is_refused_at_start(tmp_path):
                        name="pik_node")
     try:
         assert node.wait(timeout=60) == 1
-        assert "cannot start: task 'base': frame 'universe' is fixed in the world" \
-            in node.log_path.read_text()
+        assert "cannot start: stack_file: task 'base': frame 'universe' is fixed in the " \
+            "world" in node.log_path.read_text()
     finally:
         group.stop_all()
 

@@ -45,7 +45,7 @@ from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
 from stance.limits import STRATEGIES
 from stance.pik import HIERARCHIES, demo_stack_file
 from stance.stack import parse_stack_yaml
-from stance.swing import LimitFileError, load_limit_file
+from stance.swing import LimitFileError, limit_file_path, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
@@ -74,13 +74,18 @@ class PikNode(Node):
         self.robot = Robot.load(get("robot").value)
         self.q = self.robot.initial_configuration(get("initial_configuration").value or None)
         rate = get("rate").value
+        # start-up errors name the parameter they come from (both are file names)
         limit_file = get("limits_file").value or self.robot.limit_file
+        try:
+            limit_file = limit_file_path(limit_file) if limit_file else None
+            limit_models = load_limit_file(limit_file, self.robot) if limit_file else ()
+        except (OSError, LimitFileError) as error:
+            raise LimitFileError(f"limits_file: {_file_error(error)}") from None
         self.solver = PIKSolver(
             self.robot, strategy=get("strategy").value, damping=get("damping").value,
             activation=get("activation").value,
             dt=1.0 / rate if get("velocity_limits").value else None,
-            hierarchy=get("hierarchy").value,
-            limit_models=load_limit_file(limit_file, self.robot) if limit_file else (),
+            hierarchy=get("hierarchy").value, limit_models=limit_models,
             locked_joints=self.get_parameter_or(
                 "locked_joints", Parameter("locked_joints", Parameter.Type.STRING_ARRAY,
                                            [])).value)
@@ -88,9 +93,12 @@ class PikNode(Node):
         if stack_file is None:
             raise StackError(f"no demo stack ships for robot {get('robot').value!r}: "
                              "set the stack_file parameter")
-        with open(stack_file) as stream:
-            specs = parse_stack_yaml(stream.read(), self.robot.model.existFrame)
-        check_task_frames(self.robot, specs)
+        try:
+            with open(stack_file) as stream:
+                specs = parse_stack_yaml(stream.read(), self.robot.model.existFrame)
+            check_task_frames(self.robot, specs)
+        except (OSError, StackError) as error:
+            raise StackError(f"stack_file: {_file_error(error)}") from None
         self.solver.set_stack(specs, self.q)
         self.solver.warm_up(self.q)   # before any service or cycle: no first-step stall
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -131,6 +139,8 @@ class PikNode(Node):
             f"tasks, strategy {self.solver.strategy_name}, {rate:g} Hz"
             + (f", locked: {', '.join(self.solver.locked_joints)}"
                if self.solver.locked_joints else ""))
+        self.get_logger().info(
+            f"limit file: {limit_file or 'none (URDF bounds only)'}; stack file: {stack_file}")
 
     def _declare_parameters(self):
         def describe(text, read_only=True, **extra):
@@ -399,6 +409,14 @@ def fill_pose_msg(pose, xyz_quaternion) -> None:
     position, orientation = pose.position, pose.orientation
     position.x, position.y, position.z = x, y, z
     orientation.x, orientation.y, orientation.z, orientation.w = qx, qy, qz, qw
+
+
+def _file_error(error: Exception) -> str:
+    """An error about a file, as a sentence: an OSError as 'No such file or directory:
+    <path>' (no errno), anything else as its message."""
+    if isinstance(error, OSError) and error.strerror:
+        return f"{error.strerror}: {error.filename}" if error.filename else error.strerror
+    return str(error)
 
 
 def _header(stamp, frame_id=""):
