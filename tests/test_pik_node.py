@@ -391,6 +391,11 @@ def test_documented_parameter_overrides_follow_ros_args():
                                    "shipped one"),
     ("limits_file:=/no/such.yaml", "limits_file: No such file or directory: /no/such.yaml"),
     ("stack_file:=/no/such.yaml", "stack_file: No such file or directory: /no/such.yaml"),
+    # rcl types 500 as an integer: a raw InvalidParameterTypeException traceback before
+    ("rate:=500", "pik_node: cannot start: parameter 'rate' must be a double, not an integer "
+                  "(500): write rate:=500.0"),
+    ("velocity_limits:=1", "parameter 'velocity_limits' must be a bool"),
+    ("rate:=5000.0", "cannot start: Invalid parameter value (5000.0)"),
     ("locked_joints:=[gripper_left_joint, no_such_joint]",
      "locked_joints[1]: unknown joint 'no_such_joint'"),
 ])
@@ -400,6 +405,24 @@ def test_bad_startup_parameter_is_refused_with_its_reason(tmp_path, parameter, r
     try:
         assert node.wait(timeout=60) == 1
         assert reason in node.log_path.read_text()
+        assert "Traceback" not in node.log_path.read_text()
+    finally:
+        group.stop_all()
+
+
+@pytest.mark.parametrize("executable, parameter", [
+    ("trajectory_node", "rate"), ("stabilizer_gate_node", "rate"),
+    ("contact_planner_node", "time_budget")])
+def test_every_node_explains_an_integer_given_for_a_double(tmp_path, executable, parameter):
+    """The other nodes share pik_node's run_node: the same message, no traceback."""
+    group = ProcessGroup(tmp_path)
+    node = group.start(executable, "--ros-args", "-p", f"{parameter}:=100", name=executable)
+    try:
+        assert node.wait(timeout=60) == 1
+        log = node.log_path.read_text()
+        assert (f"{executable}: cannot start: parameter '{parameter}' must be a double, not an "
+                f"integer (100): write {parameter}:=100.0") in log
+        assert "Traceback" not in log
     finally:
         group.stop_all()
 

@@ -23,6 +23,7 @@ Topics and services (QoS in parentheses):
 
 from __future__ import annotations
 
+import re
 import signal
 import sys
 import threading
@@ -35,6 +36,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, PoseStamped
 from rcl_interfaces.msg import (FloatingPointRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -440,17 +442,44 @@ def spin_until_signal(node: Node, executor) -> None:
         executor.spin_once(timeout_sec=0.1)
 
 
+_TYPE_MISMATCH = re.compile(r"parameter '(?P<name>[^']+)' to '(?P<value>.*)' of type "
+                            r"'(?P<given>\w+)', expecting type '(?:Type\.)?(?P<expected>\w+)'")
+
+
+def startup_error_message(error: Exception) -> str:
+    """The reason a node cannot start, for its user. A parameter given with the wrong type
+    (`-p rate:=500` for a double: rcl types 500 as an integer) names the parameter, the
+    type it takes and how to write it; rclpy's own text otherwise."""
+    match = _TYPE_MISMATCH.search(str(error)) \
+        if isinstance(error, InvalidParameterTypeException) else None
+    if match is None:
+        return str(error)
+    name, value, given, expected = match.group("name", "value", "given", "expected")
+    hints = {"DOUBLE": f"write {name}:={value}.0" if given == "INTEGER"
+             else f"write a number with a decimal point, e.g. {name}:=1.0",
+             "BOOL": f"write {name}:=true or {name}:=false",
+             "STRING": f"quote it: {name}:=\"'{value}'\""}
+    return (f"parameter '{name}' must be {_a_type(expected)}, not {_a_type(given)} ({value})"
+            + (f": {hints[expected]}" if expected in hints else ""))
+
+
+def _a_type(type_name: str) -> str:
+    """'INTEGER' -> 'an integer', 'STRING_ARRAY' -> 'a string array'."""
+    words = type_name.lower().replace("_", " ")
+    return f"{'an' if words[0] in 'aeiou' else 'a'} {words}"
+
+
 def run_node(label: str, make_node, startup_errors: tuple, args=None, start=None, stop=None,
              make_executor=SingleThreadedExecutor) -> int:
     """The entry point of every Stance node: build the node (exit 1 with the reason on
-    `startup_errors`), call start(node), spin on make_executor() until SIGINT or SIGTERM,
-    call stop(node) (so work in executor callbacks ends), shut down the executor and rclpy;
-    exit 0."""
+    `startup_errors` and on parameter errors: a wrong type, a value out of range), call
+    start(node), spin on make_executor() until SIGINT or SIGTERM, call stop(node) (so work
+    in executor callbacks ends), shut down the executor and rclpy; exit 0."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = make_node()
-    except startup_errors as error:
-        print(f"{label}: cannot start: {error}", file=sys.stderr)
+    except (ParameterException, *startup_errors) as error:
+        print(f"{label}: cannot start: {startup_error_message(error)}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
     if start is not None:
