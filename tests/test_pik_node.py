@@ -152,6 +152,11 @@ def test_bad_com_and_posture_targets_are_rejected(pik, case):
     reason = probe.latest_status().last_rejection
     assert task in reason
     assert reason.count(f"task {task!r}") == 1, reason  # the task named once, not twice
+    if case == "nan joint":  # said whose target and which joint
+        assert reason.endswith("of task 'posture' rejected: position of arm_right_4_joint is "
+                               "NaN or infinite (nan)"), reason
+    if case == "length mismatch":
+        assert "joint names and positions differ in number (1 and 2)" in reason
     if case == "outside limits":
         assert "arm_right_4_joint = 7.0000 outside its limits [-2.3562, 0.0000]" in reason
         # taken, the target would raise the posture error by about 7 rad

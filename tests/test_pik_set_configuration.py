@@ -81,7 +81,7 @@ def test_good_request_moves_the_robot_and_every_task_holds_there(pik, robot):
 
 
 @pytest.mark.parametrize("case, words", [
-    ("nan joint", ["NaN"]),
+    ("nan joint", ["joints: position of arm_left_2_joint is NaN"]),  # not "posture target"
     ("unknown joint", ["unknown", "no_such_joint"]),
     ("outside limits", [ARM, "outside its limits"]),
     ("non-unit quaternion", ["base_pose", "quaternion"]),

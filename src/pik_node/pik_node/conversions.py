@@ -84,15 +84,17 @@ def check_position_bound(position) -> None:
 
 
 def joint_targets_from_msg(names, positions) -> dict:
-    """Joint name -> position (rad) from sensor_msgs/JointState fields."""
+    """Joint name -> position (rad) from sensor_msgs/JointState fields (a posture target or
+    set_configuration's joints: the messages name neither, the caller says which)."""
     if len(names) != len(positions):
-        raise TargetError(f"posture target has {len(names)} names but {len(positions)} "
-                          "positions")
+        raise TargetError(f"joint names and positions differ in number ({len(names)} and "
+                          f"{len(positions)})")
     if len(set(names)) != len(names):
-        raise TargetError("posture target repeats a joint name")
+        raise TargetError("a joint name is repeated")
     values = np.asarray(positions, dtype=float)
-    if not np.all(np.isfinite(values)):
-        raise TargetError("posture target contains NaN or infinite positions")
+    for name, value in zip(names, values.tolist()):
+        if not np.isfinite(value):
+            raise TargetError(f"position of {name} is NaN or infinite ({value})")
     return dict(zip(names, values.tolist()))
 
 
@@ -137,7 +139,10 @@ def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positio
     MAX_POSITION; ignored for a fixed-base robot) and the named actuated 1-DoF joints at
     positions (rad or m), which must lie inside their limits (within tolerance). Raises
     TargetError naming the field."""
-    joints = joint_targets_from_msg(names, positions)
+    try:
+        joints = joint_targets_from_msg(names, positions)
+    except TargetError as error:
+        raise TargetError(f"joints: {error}") from None
     new_q = np.array(q, dtype=float)
     if robot.floating_base:
         try:
