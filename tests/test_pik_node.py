@@ -532,6 +532,33 @@ def test_a_configuration_with_non_finite_kinematics_is_refused(monkeypatch):
             assert (after is None and target is None) or after.isApprox(target, 0.0), name
 
 
+def test_stance_param_changes_the_strategy_at_run_time(pik):
+    """`stance param set` (no ros2 CLI on PyPI) switches the strategy; a bad value or an
+    unknown parameter is refused with the node's reason and changes nothing."""
+    import subprocess
+    node, probe = pik
+
+    def stance_param(*argv):
+        return subprocess.run(["stance", "param", "set", "/pik_node", *argv],
+                              capture_output=True, text=True, timeout=60)
+
+    try:
+        done = stance_param("strategy", "clamping")
+        assert done.returncode == 0, done.stdout + done.stderr
+        assert fresh_status(probe).strategy == "clamping"
+        done = stance_param("strategy", "bogus")
+        assert done.returncode == 1
+        assert "refused strategy = bogus: strategy must be one of" in done.stderr
+        done = stance_param("no_such_parameter", "1")
+        assert done.returncode == 1 and "has no parameter 'no_such_parameter'" in done.stderr
+        assert fresh_status(probe).strategy == "clamping"
+    finally:
+        done = stance_param("strategy", "progressive")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert fresh_status(probe).strategy == "progressive"
+    assert_alive(node, probe)
+
+
 def test_a_step_is_stamped_after_the_inputs_it_reflects():
     """A callback holding pik_node's lock (a stack or target being applied) delays the
     step: the step's joint state and status are stamped once the lock is free, so that
