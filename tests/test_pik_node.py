@@ -388,6 +388,31 @@ def test_documented_parameter_overrides_follow_ros_args():
     assert not bad, "\n".join(bad)
 
 
+def test_docs_list_every_service_and_the_outputs_qos():
+    """The README's interface table and node.py's docstring name every service the node
+    creates, and the depth its per-step outputs really keep."""
+    import pathlib
+    import re
+    from pik_node import node as node_module
+    root = pathlib.Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    table = readme[readme.index("## pik_node interface"):readme.index("Parameters (")]
+    docstring = node_module.__doc__
+    services = re.findall(r'create_service\(\s*\w+,\s*"([^"]+)"',
+                          pathlib.Path(node_module.__file__).read_text())
+    assert "/pik/set_configuration" in services
+    for service in services:
+        assert f"| `{service}` (srv)" in table, service
+        assert f"srv  {service}" in docstring, service
+    depth = node_module.STREAM.depth
+    for topic in ("/joint_states", "/pik/base_pose", "/pik/status"):
+        [row] = [line for line in table.splitlines() if line.startswith(f"| `{topic}` (pub)")]
+        assert f"keep last {depth}" in row, row
+        described = docstring[docstring.index(f"pub  {topic}"):]
+        entry = described[:re.search(r"\n  (pub|sub|srv) ", described).start()]
+        assert f"(reliable, {depth})" in entry, topic
+
+
 @pytest.mark.parametrize("parameter, reason", [
     ("hierarchy:=bogus", "unknown hierarchy"),
     ("strategy:=bogus", "unknown joint limit strategy"),

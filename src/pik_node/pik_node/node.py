@@ -7,18 +7,25 @@ lock keeps the two consistent. Targets arrive per task on /pik/tasks/<name>/targ
 stack is replaced atomically through /pik/set_stack. Bad input is answered (service
 response, /pik/status.last_rejection, log) and never changes the node's state.
 
-Topics and services (QoS in parentheses):
+Topics and services (QoS in parentheses; the per-step outputs keep 1000 samples, 2 s at
+500 Hz, so that a stalled reliable reader is repaired: see STREAM):
   sub  /pik/tasks/<name>/target   PoseStamped | PointStamped (com) | JointState (posture)
                                   (reliable, keep last 10)
-  pub  /joint_states              sensor_msgs/JointState, actuated joints (reliable, 10)
-  pub  /pik/base_pose             geometry_msgs/PoseStamped, free-flyer in world (reliable, 10)
-  pub  /pik/status                stance_msgs/SolverStatus, one per step (reliable, 10)
+  pub  /joint_states              sensor_msgs/JointState, actuated joints (reliable, 1000)
+  pub  /pik/base_pose             geometry_msgs/PoseStamped, free-flyer in world
+                                  (reliable, 1000)
+  pub  /pik/status                stance_msgs/SolverStatus, one per step (reliable, 1000)
   pub  /robot_description         std_msgs/String, URDF (reliable, transient local)
-  srv  /pik/set_stack             stance_msgs/SetStack
-  srv  /pik/set_task_enabled      stance_msgs/SetTaskEnabled
+  srv  /pik/set_stack             stance_msgs/SetStack (a stack with no enabled task is
+                                  taken, its response ends with a warning)
+  srv  /pik/set_task_enabled      stance_msgs/SetTaskEnabled (same warning)
   srv  /pik/set_configuration     stance_msgs/SetConfiguration: jump to a configuration
                                   (base pose, joints inside their limits); every task
                                   then holds its value there
+Positions (targets, base pose) are bounded by conversions.MAX_POSITION (1e6 m); no state
+that is not finite is committed (an IK step that gives one is discarded and reported).
+The strategy parameter can be set at run time (`stance param set /pik_node strategy
+clamping`, or ros2 param set).
 """
 
 from __future__ import annotations
