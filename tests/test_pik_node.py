@@ -1,6 +1,7 @@
 """pik_node over DDS in its own process: targets move the robot, bad input is rejected
 with a reason and changes nothing, the stack can be replaced and tasks toggled."""
 
+import contextlib
 import copy
 import math
 import os
@@ -99,9 +100,12 @@ def bad_pose_targets():
     non_unit = pose_target(_unit_pose())
     non_unit.pose.orientation.w = 0.5
     unknown_frame = pose_target(_unit_pose(), frame_id="no_such_frame")
+    huge = pose_target(_unit_pose())
+    huge.pose.position.x = 1e308  # finite: it passed the NaN checks, residuals read inf
     return {"nan": (nan_position, "NaN"), "inf": (inf_position, "infinite"),
             "non-unit quaternion": (non_unit, "not unit"),
-            "unknown frame": (unknown_frame, "unknown frame")}
+            "unknown frame": (unknown_frame, "unknown frame"),
+            "huge position": (huge, "position x = 1e+308 m is beyond the bound |x| <= 1e+06")}
 
 
 def _unit_pose():
@@ -125,21 +129,43 @@ def test_bad_pose_target_is_rejected_and_changes_nothing(pik, case):
     assert_alive(node, probe)
 
 
-@pytest.mark.parametrize("case", ["nan com", "unknown joint", "length mismatch", "nan joint"])
+@pytest.mark.parametrize("case", ["nan com", "huge com", "unknown joint", "length mismatch",
+                                  "nan joint", "outside limits"])
 def test_bad_com_and_posture_targets_are_rejected(pik, case):
     node, probe = pik
     before = fresh_status(probe)
     if case == "nan com":
         task, msg = "com", point_target(float("nan"), 0.0, 0.8)
+    elif case == "huge com":
+        task, msg = "com", point_target(0.0, -1e308, 0.8)
     else:
         names, positions = {"unknown joint": (["no_such_joint"], [0.1]),
                             "length mismatch": (["arm_right_4_joint"], [0.1, 0.2]),
-                            "nan joint": (["arm_right_4_joint"], [float("nan")])}[case]
+                            "nan joint": (["arm_right_4_joint"], [float("nan")]),
+                            # limits [-2.356, 0]: rejected as /pik/set_configuration does
+                            "outside limits": (["arm_right_1_joint", "arm_right_4_joint"],
+                                               [0.0, 7.0])}[case]
         task, msg = "posture", JointState(name=names, position=positions)
     probe.publish_target(task, msg)
     wait_until(lambda: probe.latest_status().rejected_inputs > before.rejected_inputs, 10,
                what="the rejection in /pik/status")
-    assert task in probe.latest_status().last_rejection
+    reason = probe.latest_status().last_rejection
+    assert task in reason
+    assert reason.count(f"task {task!r}") == 1, reason  # the task named once, not twice
+    if case == "nan joint":  # said whose target and which joint
+        assert reason.endswith("of task 'posture' rejected: position of arm_right_4_joint is "
+                               "NaN or infinite (nan)"), reason
+    if case == "length mismatch":
+        assert "joint names and positions differ in number (1 and 2)" in reason
+    if case == "outside limits":
+        assert "arm_right_4_joint = 7.0000 outside its limits [-2.3562, 0.0000]" in reason
+        # taken, the target would raise the posture error by about 7 rad
+        error = task_status(fresh_status(probe), "posture").error_norm
+        assert abs(error - task_status(before, "posture").error_norm) < 1.0
+    if case == "huge com":
+        assert "position y = -1e+308 m is beyond the bound" in reason
+        assert task_status(probe.latest_status(), "com").target == \
+            task_status(before, "com").target
     assert_alive(node, probe)
 
 
@@ -179,6 +205,13 @@ def malformed_stacks():
         "axis not for kind": (edited(2, axis_mask=TaskSpec.AXIS_RX), "axis"),
         "empty": ([], "empty"),
         "bad name": (edited(3, name="right hand"), "name"),
+        # Pinocchio's frame 0, FIXED_JOINT: nothing moves it, its Jacobian is zero
+        "universe frame": (edited(3, frame="universe"),
+                           "frame 'universe' is fixed in the world"),
+        # the free flyer's JOINT frame: the base is targeted through its body frame
+        "root_joint frame": (edited(3, frame="root_joint"),
+                             "frame 'root_joint' is the free flyer's joint frame, not a body "
+                             "frame: target the base body ('base_link')"),
     }
 
 
@@ -231,6 +264,38 @@ def test_stack_replacement_and_task_toggle(pik):
     assert all("left_hand" not in level.tasks for level in status.levels)
 
 
+def test_no_enabled_task_is_allowed_with_a_warning(pik):
+    """Disabling the last enabled task, or a stack of disabled tasks only, succeeds with a
+    warning in the response: the solver steps with no level and the robot stays put."""
+    node, probe = pik
+    idle = "warning: no task is enabled"
+    try:
+        for index, name in enumerate(DEMO_TASKS):
+            response = probe.call(probe.set_enabled_client,
+                                  SetTaskEnabled.Request(name=name, enabled=False))
+            assert response.success, response.message
+            assert (idle in response.message) == (index == len(DEMO_TASKS) - 1), \
+                response.message
+        status = fresh_status(probe)
+        assert list(status.levels) == [] and not any(t.enabled for t in status.tasks)
+        still = probe.latest_joint_state().position
+        fresh_status(probe)
+        assert probe.latest_joint_state().position == still
+        assert math.isfinite(max(still))
+        tasks = demo_stack_msgs()
+        for task in tasks:
+            task.enabled = False
+        response = probe.call(probe.set_stack_client, SetStack.Request(tasks=tasks))
+        assert response.success and idle in response.message, response.message
+        assert fresh_status(probe).levels == []
+    finally:
+        response = probe.call(probe.set_stack_client,
+                              SetStack.Request(tasks=demo_stack_msgs()))
+    assert response.success and idle not in response.message, response.message
+    assert len(fresh_status(probe).levels) == 4
+    assert_alive(node, probe)
+
+
 def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
     """The real `stance teleop` process drives the real pik_node through the target topic."""
     node, probe = pik
@@ -251,16 +316,19 @@ def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
     assert np.abs(np.array(probe.latest_joint_state().position) - start).max() > 0.01
 
 
-@pytest.mark.parametrize("parameters, check", [
-    (["-p", "hierarchy:=qp"], lambda status: status.hierarchy == "qp"),
+@pytest.mark.parametrize("parameters, check, logged", [
+    (["-p", "hierarchy:=qp"], lambda status: status.hierarchy == "qp",
+     "limit file: none (URDF bounds only); stack file: "),
     (["-p", "robot:=mannequin", "-p", "rate:=50.0"],
      lambda status: "right_shoulder_swing_x" in status.joint_names
-     and "right_shoulder_twist" in status.joint_names),
+     and "right_shoulder_twist" in status.joint_names,
+     "stance/data/mannequin_limits.yaml; stack file: "),
     (["-p", "limits_file:=talos"],
      lambda status: status.joint_names.count("leg_left_2_joint") == 1
-     and "arm_right_3_joint" in status.joint_names),
+     and "arm_right_3_joint" in status.joint_names,
+     "stance/data/talos_limits.yaml; stack file: "),
 ], ids=["qp hierarchy", "mannequin with swing limits", "talos with joint groups"])
-def test_node_variants_run_and_report(tmp_path, parameters, check):
+def test_node_variants_run_and_report(tmp_path, parameters, check, logged):
     domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200  # away from the module's node
     group = ProcessGroup(tmp_path)
     node = group.start("pik_node", "--ros-args", *parameters, name="pik_node",
@@ -273,6 +341,7 @@ def test_node_variants_run_and_report(tmp_path, parameters, check):
         status = probe.latest_status()
         assert check(status)
         assert len(status.damping) == len(status.joint_names)
+        assert logged in node.log_path.read_text()  # which files the node loaded
     finally:
         probe.close()
         group.stop_all()
@@ -304,11 +373,59 @@ def test_locked_joints_stay_where_the_posture_target_pulls(tmp_path):
         group.stop_all()
 
 
+def test_documented_parameter_overrides_follow_ros_args():
+    """rcl reads `-p name:=value` only after `--ros-args`; before it, the override is
+    silently ignored (`pik_node -p limits_file:=talos` ran without the limit file)."""
+    import pathlib
+    import re
+    root = pathlib.Path(__file__).resolve().parents[1]
+    files = [root / "README.md", *root.glob("docs/**/*.md"), *root.glob("src/*/config/*"),
+             *root.glob("src/stance/stance/data/*.yaml")]
+    bad = [f"{path.relative_to(root)}:{number}: {line.strip()}"
+           for path in files for number, line in enumerate(path.read_text().splitlines(), 1)
+           if re.search(r"(^|\s)-p \w+:=", line)
+           and "--ros-args" not in line.split(" -p ")[0]]
+    assert not bad, "\n".join(bad)
+
+
+def test_docs_list_every_service_and_the_outputs_qos():
+    """The README's interface table and node.py's docstring name every service the node
+    creates, and the depth its per-step outputs really keep."""
+    import pathlib
+    import re
+    from pik_node import node as node_module
+    root = pathlib.Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    table = readme[readme.index("## pik_node interface"):readme.index("Parameters (")]
+    docstring = node_module.__doc__
+    services = re.findall(r'create_service\(\s*\w+,\s*"([^"]+)"',
+                          pathlib.Path(node_module.__file__).read_text())
+    assert "/pik/set_configuration" in services
+    for service in services:
+        assert f"| `{service}` (srv)" in table, service
+        assert f"srv  {service}" in docstring, service
+    depth = node_module.STREAM.depth
+    for topic in ("/joint_states", "/pik/base_pose", "/pik/status"):
+        [row] = [line for line in table.splitlines() if line.startswith(f"| `{topic}` (pub)")]
+        assert f"keep last {depth}" in row, row
+        described = docstring[docstring.index(f"pub  {topic}"):]
+        entry = described[:re.search(r"\n  (pub|sub|srv) ", described).start()]
+        assert f"(reliable, {depth})" in entry, topic
+
+
 @pytest.mark.parametrize("parameter, reason", [
     ("hierarchy:=bogus", "unknown hierarchy"),
     ("strategy:=bogus", "unknown joint limit strategy"),
     ("robot:=no_such_robot", "unknown example-robot-data robot"),
-    ("limits_file:=no_such_robot", "no such limit file, nor a shipped one"),
+    ("limits_file:=no_such_robot", "limits_file: no_such_robot: no such limit file, nor a "
+                                   "shipped one"),
+    ("limits_file:=/no/such.yaml", "limits_file: No such file or directory: /no/such.yaml"),
+    ("stack_file:=/no/such.yaml", "stack_file: No such file or directory: /no/such.yaml"),
+    # rcl types 500 as an integer: a raw InvalidParameterTypeException traceback before
+    ("rate:=500", "pik_node: cannot start: parameter 'rate' must be a double, not an integer "
+                  "(500): write rate:=500.0"),
+    ("velocity_limits:=1", "parameter 'velocity_limits' must be a bool"),
+    ("rate:=5000.0", "cannot start: Invalid parameter value (5000.0)"),
     ("locked_joints:=[gripper_left_joint, no_such_joint]",
      "locked_joints[1]: unknown joint 'no_such_joint'"),
 ])
@@ -318,6 +435,38 @@ def test_bad_startup_parameter_is_refused_with_its_reason(tmp_path, parameter, r
     try:
         assert node.wait(timeout=60) == 1
         assert reason in node.log_path.read_text()
+        assert "Traceback" not in node.log_path.read_text()
+    finally:
+        group.stop_all()
+
+
+@pytest.mark.parametrize("executable, parameter", [
+    ("trajectory_node", "rate"), ("stabilizer_gate_node", "rate"),
+    ("contact_planner_node", "time_budget")])
+def test_every_node_explains_an_integer_given_for_a_double(tmp_path, executable, parameter):
+    """The other nodes share pik_node's run_node: the same message, no traceback."""
+    group = ProcessGroup(tmp_path)
+    node = group.start(executable, "--ros-args", "-p", f"{parameter}:=100", name=executable)
+    try:
+        assert node.wait(timeout=60) == 1
+        log = node.log_path.read_text()
+        assert (f"{executable}: cannot start: parameter '{parameter}' must be a double, not an "
+                f"integer (100): write {parameter}:=100.0") in log
+        assert "Traceback" not in log
+    finally:
+        group.stop_all()
+
+
+def test_stack_file_on_a_fixed_frame_is_refused_at_start(tmp_path):
+    stack = tmp_path / "stack.yaml"
+    stack.write_text("- {name: base, kind: pose, frame: universe, priority: 0}\n")
+    group = ProcessGroup(tmp_path)
+    node = group.start("pik_node", "--ros-args", "-p", f"stack_file:={stack}",
+                       name="pik_node")
+    try:
+        assert node.wait(timeout=60) == 1
+        assert "cannot start: stack_file: task 'base': frame 'universe' is fixed in the " \
+            "world" in node.log_path.read_text()
     finally:
         group.stop_all()
 
@@ -332,6 +481,105 @@ def test_bad_runtime_strategy_is_refused_and_the_old_one_kept(pik):
                                               string_value="bogus"))])
     result = probe.call(client, request).results[0]
     assert not result.successful and "strategy must be one of" in result.reason
+    assert fresh_status(probe).strategy == "progressive"
+    assert_alive(node, probe)
+
+
+@contextlib.contextmanager
+def local_pik_node():
+    """An in-process pik_node (default robot, its loop not started) in another domain."""
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)
+    try:
+        node = PikNode(context=context)
+        try:
+            yield node
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_a_non_finite_step_is_discarded_and_reported():
+    """An IK step whose configuration is not finite (here a solver made to return NaN) is
+    not committed: the node publishes the previous configuration, counts and explains the
+    discarded step in its status, and goes on with the next finite step."""
+    with local_pik_node() as node:
+        published = {"joints": [], "status": []}
+        node.joint_state_pub.publish = published["joints"].append
+        node.status_pub.publish = lambda msg: published["status"].append(copy.deepcopy(msg))
+        node._tick()
+        q_before = node.q.copy()
+        real_step = node.solver.step
+
+        def nan_step(q):
+            result = real_step(q)
+            result.q = np.full_like(result.q, np.nan)
+            return result
+
+        node.solver.step = nan_step
+        node._tick()
+        node._tick()
+        assert np.array_equal(node.q, q_before)
+        for joint_state in published["joints"][1:]:
+            assert joint_state.position == published["joints"][0].position
+        status = published["status"][-1]
+        assert status.rejected_inputs == 2
+        assert "non-finite configuration" in status.last_rejection
+        assert "2 in a row" in status.last_rejection
+        assert all(math.isfinite(level.residual_norm) for level in status.levels)
+        assert all(math.isfinite(task.error_norm) for task in status.tasks)
+        node.solver.step = real_step
+        node._tick()
+        assert node.discarded_steps == 0 and node.cycles == 4
+        assert np.isfinite(node.q).all()
+
+
+def test_a_configuration_with_non_finite_kinematics_is_refused(monkeypatch):
+    """The last guard of /pik/set_configuration: with the position bound lifted, a base at
+    x = 1e308 passes the message checks but its centre of mass overflows; the request is
+    refused and nothing changes."""
+    from pik_node import conversions
+    from stance_msgs.srv import SetConfiguration
+    monkeypatch.setattr(conversions, "MAX_POSITION", math.inf)
+    with local_pik_node() as node:
+        q_before = node.q.copy()
+        targets = {name: node.solver.task_poses(name)[0] for name in node.solver.tasks}
+        request = SetConfiguration.Request()
+        fill_pose_msg(request.base_pose, q_before[:7])
+        request.base_pose.position.x = 1e308
+        response = node._on_set_configuration(request, SetConfiguration.Response())
+        assert not response.success
+        assert "not finite" in response.message and node.last_rejection == response.message
+        assert np.array_equal(node.q, q_before)
+        for name, target in targets.items():
+            after = node.solver.task_poses(name)[0]
+            assert (after is None and target is None) or after.isApprox(target, 0.0), name
+
+
+def test_stance_param_changes_the_strategy_at_run_time(pik):
+    """`stance param set` (no ros2 CLI on PyPI) switches the strategy; a bad value or an
+    unknown parameter is refused with the node's reason and changes nothing."""
+    import subprocess
+    node, probe = pik
+
+    def stance_param(*argv):
+        return subprocess.run(["stance", "param", "set", "/pik_node", *argv],
+                              capture_output=True, text=True, timeout=60)
+
+    try:
+        done = stance_param("strategy", "clamping")
+        assert done.returncode == 0, done.stdout + done.stderr
+        assert fresh_status(probe).strategy == "clamping"
+        done = stance_param("strategy", "bogus")
+        assert done.returncode == 1
+        assert "refused strategy = bogus: strategy must be one of" in done.stderr
+        done = stance_param("no_such_parameter", "1")
+        assert done.returncode == 1 and "has no parameter 'no_such_parameter'" in done.stderr
+        assert fresh_status(probe).strategy == "clamping"
+    finally:
+        done = stance_param("strategy", "progressive")
+    assert done.returncode == 0, done.stdout + done.stderr
     assert fresh_status(probe).strategy == "progressive"
     assert_alive(node, probe)
 

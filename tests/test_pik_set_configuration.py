@@ -81,11 +81,12 @@ def test_good_request_moves_the_robot_and_every_task_holds_there(pik, robot):
 
 
 @pytest.mark.parametrize("case, words", [
-    ("nan joint", ["NaN"]),
+    ("nan joint", ["joints: position of arm_left_2_joint is NaN"]),  # not "posture target"
     ("unknown joint", ["unknown", "no_such_joint"]),
     ("outside limits", [ARM, "outside its limits"]),
     ("non-unit quaternion", ["base_pose", "quaternion"]),
     ("nan base", ["base_pose", "NaN"]),
+    ("huge base", ["base_pose", "position x = 1e+308 m is beyond the bound |x| <= 1e+06 m"]),
 ])
 def test_bad_request_is_rejected_with_its_reason_and_changes_nothing(pik, robot, case, words):
     node, probe, client = pik
@@ -101,6 +102,8 @@ def test_bad_request_is_rejected_with_its_reason_and_changes_nothing(pik, robot,
         request.joints.position[index] = robot.upper[robot.limited_joint_names.index(ARM)] + 0.1
     elif case == "non-unit quaternion":
         request.base_pose.orientation.w = 0.5
+    elif case == "huge base":
+        request.base_pose.position.x = 1e308  # finite: it was taken, then all output NaN
     else:
         request.base_pose.position.z = float("nan")
     response = probe.call(client, request)

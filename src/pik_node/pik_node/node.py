@@ -7,22 +7,30 @@ lock keeps the two consistent. Targets arrive per task on /pik/tasks/<name>/targ
 stack is replaced atomically through /pik/set_stack. Bad input is answered (service
 response, /pik/status.last_rejection, log) and never changes the node's state.
 
-Topics and services (QoS in parentheses):
+Topics and services (QoS in parentheses; the per-step outputs keep 1000 samples, 2 s at
+500 Hz, so that a stalled reliable reader is repaired: see STREAM):
   sub  /pik/tasks/<name>/target   PoseStamped | PointStamped (com) | JointState (posture)
                                   (reliable, keep last 10)
-  pub  /joint_states              sensor_msgs/JointState, actuated joints (reliable, 10)
-  pub  /pik/base_pose             geometry_msgs/PoseStamped, free-flyer in world (reliable, 10)
-  pub  /pik/status                stance_msgs/SolverStatus, one per step (reliable, 10)
+  pub  /joint_states              sensor_msgs/JointState, actuated joints (reliable, 1000)
+  pub  /pik/base_pose             geometry_msgs/PoseStamped, free-flyer in world
+                                  (reliable, 1000)
+  pub  /pik/status                stance_msgs/SolverStatus, one per step (reliable, 1000)
   pub  /robot_description         std_msgs/String, URDF (reliable, transient local)
-  srv  /pik/set_stack             stance_msgs/SetStack
-  srv  /pik/set_task_enabled      stance_msgs/SetTaskEnabled
+  srv  /pik/set_stack             stance_msgs/SetStack (a stack with no enabled task is
+                                  taken, its response ends with a warning)
+  srv  /pik/set_task_enabled      stance_msgs/SetTaskEnabled (same warning)
   srv  /pik/set_configuration     stance_msgs/SetConfiguration: jump to a configuration
                                   (base pose, joints inside their limits); every task
                                   then holds its value there
+Positions (targets, base pose) are bounded by conversions.MAX_POSITION (1e6 m); no state
+that is not finite is committed (an IK step that gives one is discarded and reported).
+The strategy parameter can be set at run time (`stance param set /pik_node strategy
+clamping`, or ros2 param set).
 """
 
 from __future__ import annotations
 
+import re
 import signal
 import sys
 import threading
@@ -35,6 +43,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, PoseStamped
 from rcl_interfaces.msg import (FloatingPointRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -45,12 +54,13 @@ from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
 from stance.limits import STRATEGIES
 from stance.pik import HIERARCHIES, demo_stack_file
 from stance.stack import parse_stack_yaml
-from stance.swing import LimitFileError, load_limit_file
+from stance.swing import LimitFileError, limit_file_path, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
 
-from .conversions import (check_world_frame, configuration_from_msg, joint_targets_from_msg,
+from .conversions import (check_task_frames, check_within_limits, check_world_frame,
+                          configuration_from_msg, joint_targets_from_msg, point_from_msg,
                           se3_from_pose_msg, spec_from_msg)
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -73,13 +83,18 @@ class PikNode(Node):
         self.robot = Robot.load(get("robot").value)
         self.q = self.robot.initial_configuration(get("initial_configuration").value or None)
         rate = get("rate").value
+        # start-up errors name the parameter they come from (both are file names)
         limit_file = get("limits_file").value or self.robot.limit_file
+        try:
+            limit_file = limit_file_path(limit_file) if limit_file else None
+            limit_models = load_limit_file(limit_file, self.robot) if limit_file else ()
+        except (OSError, LimitFileError) as error:
+            raise LimitFileError(f"limits_file: {_file_error(error)}") from None
         self.solver = PIKSolver(
             self.robot, strategy=get("strategy").value, damping=get("damping").value,
             activation=get("activation").value,
             dt=1.0 / rate if get("velocity_limits").value else None,
-            hierarchy=get("hierarchy").value,
-            limit_models=load_limit_file(limit_file, self.robot) if limit_file else (),
+            hierarchy=get("hierarchy").value, limit_models=limit_models,
             locked_joints=self.get_parameter_or(
                 "locked_joints", Parameter("locked_joints", Parameter.Type.STRING_ARRAY,
                                            [])).value)
@@ -87,9 +102,13 @@ class PikNode(Node):
         if stack_file is None:
             raise StackError(f"no demo stack ships for robot {get('robot').value!r}: "
                              "set the stack_file parameter")
-        with open(stack_file) as stream:
-            self.solver.set_stack(parse_stack_yaml(stream.read(), self.robot.model.existFrame),
-                                  self.q)
+        try:
+            with open(stack_file) as stream:
+                specs = parse_stack_yaml(stream.read(), self.robot.model.existFrame)
+            check_task_frames(self.robot, specs)
+        except (OSError, StackError) as error:
+            raise StackError(f"stack_file: {_file_error(error)}") from None
+        self.solver.set_stack(specs, self.q)
         self.solver.warm_up(self.q)   # before any service or cycle: no first-step stall
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -120,13 +139,17 @@ class PikNode(Node):
                                              daemon=True)
         self.cycles = 0
         self.overruns = 0
+        self.discarded_steps = 0   # IK steps in a row whose configuration was not finite
         self._status_template = None
         self._hierarchy_name = get("hierarchy").value
+        self._idle_warning()
         self.get_logger().info(
             f"robot {get('robot').value} (nv {self.robot.model.nv}), {len(self.solver.tasks)} "
             f"tasks, strategy {self.solver.strategy_name}, {rate:g} Hz"
             + (f", locked: {', '.join(self.solver.locked_joints)}"
                if self.solver.locked_joints else ""))
+        self.get_logger().info(
+            f"limit file: {limit_file or 'none (URDF bounds only)'}; stack file: {stack_file}")
 
     def _declare_parameters(self):
         def describe(text, read_only=True, **extra):
@@ -197,11 +220,12 @@ class PikNode(Node):
             task = self.solver.task(name)
             kind = task.spec.kind
             if kind == "posture":
-                task.set_joint_targets(self.robot, joint_targets_from_msg(msg.name,
-                                                                           msg.position))
+                joints = joint_targets_from_msg(msg.name, msg.position)
+                check_within_limits(self.robot, joints)  # as /pik/set_configuration does
+                task.set_joint_targets(self.robot, joints)
             elif kind == "com":
                 check_world_frame(msg.header.frame_id)
-                task.set_target((msg.point.x, msg.point.y, msg.point.z))
+                task.set_target(point_from_msg(msg.point))
             else:
                 check_world_frame(msg.header.frame_id)
                 task.set_target(se3_from_pose_msg(msg.pose))
@@ -213,6 +237,7 @@ class PikNode(Node):
     def _on_set_stack(self, request, response):
         try:
             specs = [spec_from_msg(msg) for msg in request.tasks]
+            check_task_frames(self.robot, specs)
             with self._lock:
                 self.solver.set_stack(specs, self.q)
                 self._status_template = None
@@ -222,7 +247,7 @@ class PikNode(Node):
             return response
         self._sync_target_subscriptions()
         response.success = True
-        response.message = f"stack of {len(specs)} tasks in force"
+        response.message = f"stack of {len(specs)} tasks in force" + self._idle_warning()
         self.get_logger().info(response.message)
         return response
 
@@ -236,8 +261,20 @@ class PikNode(Node):
             self._reject(response.message)
             return response
         response.success = True
-        response.message = f"task {request.name!r} {'enabled' if request.enabled else 'disabled'}"
+        response.message = (f"task {request.name!r} "
+                            f"{'enabled' if request.enabled else 'disabled'}"
+                            + self._idle_warning())
         return response
+
+    def _idle_warning(self) -> str:
+        """A stack whose tasks are all disabled is allowed (the IK steps with no level and
+        the robot stays put): '' if a task is enabled, else a warning, also logged."""
+        if any(task.enabled for task in self.solver.tasks.values()):
+            return ""
+        warning = ("; warning: no task is enabled, nothing drives the robot until one is "
+                   "(/pik/set_task_enabled)")
+        self.get_logger().warning(warning[2:])
+        return warning
 
     def _on_set_configuration(self, request, response):
         """Jump to the requested configuration and hold every task's value there (its
@@ -248,6 +285,8 @@ class PikNode(Node):
                 q = configuration_from_msg(self.robot, self.q, request.base_pose,
                                            request.joints.name, request.joints.position)
                 self.solver.compute_kinematics(q, com=True)
+                if not (np.isfinite(q).all() and np.isfinite(self.robot.data.com[0]).all()):
+                    raise TargetError("the configuration or its centre of mass is not finite")
                 for task in self.solver.tasks.values():
                     task.hold(self.robot, q)
                 self.q = q
@@ -265,6 +304,17 @@ class PikNode(Node):
         self.rejected_inputs += 1
         self.last_rejection = reason
         self.get_logger().warning(reason)
+
+    def _discard_step(self):
+        """An IK step gave a non-finite configuration: the node keeps (and publishes) the
+        previous one, counts the step as a rejection and logs the first of a streak."""
+        self.discarded_steps += 1
+        self.rejected_inputs += 1
+        self.last_rejection = (f"IK step {self.cycles + 1} gave a non-finite configuration: "
+                               f"discarded, the previous one kept ({self.discarded_steps} "
+                               "in a row)")
+        if self.discarded_steps == 1:
+            self.get_logger().error(self.last_rejection)
 
     # --- IK loop ------------------------------------------------------------------------
 
@@ -295,9 +345,18 @@ class PikNode(Node):
             # received after its stamp (a callback may hold the lock for a while)
             stamp = self.get_clock().now().to_msg()
             result = self.solver.step(self.q)
-            self.q = q = result.q
+            finite = np.isfinite(result.q).all()
+            if finite:
+                self.q = result.q
+                if self.discarded_steps:
+                    self.get_logger().info(f"IK steps finite again after {self.discarded_steps}"
+                                           " discarded")
+                    self.discarded_steps = 0
+            else:
+                self._discard_step()
+            q = self.q
             self.cycles += 1
-            status = self._fill_status(stamp, result)
+            status = self._fill_status(stamp, result if finite else None)
         joint_state = JointState(header=_header(stamp), name=self._joint_names,
                                  position=q[self._joint_q_index].tolist())
         self.joint_state_pub.publish(joint_state)
@@ -309,23 +368,26 @@ class PikNode(Node):
 
     def _fill_status(self, stamp, result) -> SolverStatus:
         """Update the reused status message in place (building it anew each step costs more
-        than the IK step); rebuilt when the stack or an enable flag changes."""
+        than the IK step); rebuilt when the stack or an enable flag changes. result None (a
+        discarded step): the solver's figures of the last kept step stay."""
         if self._status_template is None:
             self._status_template = self._new_status()
         status = self._status_template
         status.header.stamp = stamp
         status.strategy = self.solver.strategy_name
         status.hierarchy = self._hierarchy_name
-        status.binding_constraints = result.binding_constraints
-        status.clamping_iterations = result.clamping_iterations
-        status.solve_time = result.solve_time
         status.cycles = self.cycles
         status.overruns = self.overruns
-        status.damping = result.damping.tolist()
-        status.clamped = result.clamped.tolist()
         status.last_input_stamp = self.last_input_stamp
         status.rejected_inputs = self.rejected_inputs
         status.last_rejection = self.last_rejection
+        if result is None:
+            return status
+        status.binding_constraints = result.binding_constraints
+        status.clamping_iterations = result.clamping_iterations
+        status.solve_time = result.solve_time
+        status.damping = result.damping.tolist()
+        status.clamped = result.clamped.tolist()
         for level_msg, level in zip(status.levels, result.levels):
             level_msg.residual_norm = level.residual_norm
             level_msg.step_residual_norm = level.step_residual_norm
@@ -358,6 +420,14 @@ def fill_pose_msg(pose, xyz_quaternion) -> None:
     orientation.x, orientation.y, orientation.z, orientation.w = qx, qy, qz, qw
 
 
+def _file_error(error: Exception) -> str:
+    """An error about a file, as a sentence: an OSError as 'No such file or directory:
+    <path>' (no errno), anything else as its message."""
+    if isinstance(error, OSError) and error.strerror:
+        return f"{error.strerror}: {error.filename}" if error.filename else error.strerror
+    return str(error)
+
+
 def _header(stamp, frame_id=""):
     return Header(stamp=stamp, frame_id=frame_id)
 
@@ -379,17 +449,44 @@ def spin_until_signal(node: Node, executor) -> None:
         executor.spin_once(timeout_sec=0.1)
 
 
+_TYPE_MISMATCH = re.compile(r"parameter '(?P<name>[^']+)' to '(?P<value>.*)' of type "
+                            r"'(?P<given>\w+)', expecting type '(?:Type\.)?(?P<expected>\w+)'")
+
+
+def startup_error_message(error: Exception) -> str:
+    """The reason a node cannot start, for its user. A parameter given with the wrong type
+    (`-p rate:=500` for a double: rcl types 500 as an integer) names the parameter, the
+    type it takes and how to write it; rclpy's own text otherwise."""
+    match = _TYPE_MISMATCH.search(str(error)) \
+        if isinstance(error, InvalidParameterTypeException) else None
+    if match is None:
+        return str(error)
+    name, value, given, expected = match.group("name", "value", "given", "expected")
+    hints = {"DOUBLE": f"write {name}:={value}.0" if given == "INTEGER"
+             else f"write a number with a decimal point, e.g. {name}:=1.0",
+             "BOOL": f"write {name}:=true or {name}:=false",
+             "STRING": f"quote it: {name}:=\"'{value}'\""}
+    return (f"parameter '{name}' must be {_a_type(expected)}, not {_a_type(given)} ({value})"
+            + (f": {hints[expected]}" if expected in hints else ""))
+
+
+def _a_type(type_name: str) -> str:
+    """'INTEGER' -> 'an integer', 'STRING_ARRAY' -> 'a string array'."""
+    words = type_name.lower().replace("_", " ")
+    return f"{'an' if words[0] in 'aeiou' else 'a'} {words}"
+
+
 def run_node(label: str, make_node, startup_errors: tuple, args=None, start=None, stop=None,
              make_executor=SingleThreadedExecutor) -> int:
     """The entry point of every Stance node: build the node (exit 1 with the reason on
-    `startup_errors`), call start(node), spin on make_executor() until SIGINT or SIGTERM,
-    call stop(node) (so work in executor callbacks ends), shut down the executor and rclpy;
-    exit 0."""
+    `startup_errors` and on parameter errors: a wrong type, a value out of range), call
+    start(node), spin on make_executor() until SIGINT or SIGTERM, call stop(node) (so work
+    in executor callbacks ends), shut down the executor and rclpy; exit 0."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = make_node()
-    except startup_errors as error:
-        print(f"{label}: cannot start: {error}", file=sys.stderr)
+    except (ParameterException, *startup_errors) as error:
+        print(f"{label}: cannot start: {startup_error_message(error)}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
     if start is not None:

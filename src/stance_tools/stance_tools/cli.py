@@ -27,6 +27,8 @@ SUBCOMMANDS = {
                   "check an executed plan's bag: contacts, limits, C1, balance, stabilizer"),
     "graph": ("stance_tools.graph",
               "run the node graph: one process per node, crashed nodes restarted"),
+    "param": ("stance_tools.param",
+              "set a running node's parameter (e.g. pik_node's strategy) without ros2"),
 }
 
 
