@@ -12,7 +12,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from conftest import NODE_START_TIMEOUT, wait_until
-from geometry_msgs.msg import Pose
+from geometry_msgs.msg import Point32, PolygonStamped, Pose
 from pik_node.conversions import se3_from_pose_msg
 from pik_node.node import PikNode, fill_pose_msg
 from stance_tools.processes import ProcessGroup
@@ -184,6 +184,11 @@ def demo_stack_msgs():
     ]
 
 
+def support_spec(priority=4):
+    return TaskSpec(name="balance", kind=TaskSpec.KIND_SUPPORT, priority=priority,
+                    weight=1.0, gain=0.2, enabled=True)
+
+
 def malformed_stacks():
     def edited(index, **changes):
         tasks = demo_stack_msgs()
@@ -194,6 +199,9 @@ def malformed_stacks():
     duplicate = demo_stack_msgs()
     duplicate[1].name = "left_foot"
     return {
+        # the module's node runs the default svd hierarchy: no inequality rows
+        "support without qp": (demo_stack_msgs() + [support_spec()],
+                               "kind support is an inequality, which only the qp hierarchy"),
         "duplicate task": (duplicate, "duplicate task name"),
         "unknown frame": (edited(3, frame="no_such_link"), "unknown frame"),
         "negative priority": (edited(2, priority=-1), "priority"),
@@ -342,6 +350,66 @@ def test_node_variants_run_and_report(tmp_path, parameters, check, logged):
         assert check(status)
         assert len(status.damping) == len(status.joint_names)
         assert logged in node.log_path.read_text()  # which files the node loaded
+    finally:
+        probe.close()
+        group.stop_all()
+
+
+def sole_polygon(status, shift_x=0.0):
+    """PolygonStamped: the hull of both feet's 0.2 x 0.1 m soles (world-aligned at the
+    start), moved shift_x m along x."""
+    polygon = PolygonStamped()
+    polygon.header.frame_id = "world"
+    for foot in ("left_foot", "right_foot"):
+        position = task_status(status, foot).target.position
+        for dx in (-0.1, 0.1):
+            for dy in (-0.05, 0.05):
+                polygon.polygon.points.append(Point32(x=position.x + dx + shift_x,
+                                                      y=position.y + dy, z=0.0))
+    return polygon
+
+
+def test_a_support_polygon_brings_the_com_back_inside(tmp_path):
+    """pik_node on the QP hierarchy with feet > support > hand > posture: a polygon whose
+    back edge lies ahead of the CoM brings the CoM inside at the task's gain; a polygon of
+    two vertices is refused with its reason and the old polygon kept."""
+    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 120) % 200  # away from the module's node
+    group = ProcessGroup(tmp_path)
+    node = group.start("pik_node", "--ros-args", "-p", "hierarchy:=qp", name="pik_node",
+                       env={"ROS_DOMAIN_ID": str(domain)})
+    probe = PikProbe("support_probe", domain_id=domain)
+    try:
+        wait_until(lambda: probe.status_count() > 5 or node.poll() is not None,
+                   NODE_START_TIMEOUT, what="pik_node status")
+        assert node.poll() is None, node.log_path.read_text()
+        tasks = [task for task in demo_stack_msgs() if task.name != "com"]
+        tasks.insert(2, support_spec(priority=1))
+        response = probe.call(probe.set_stack_client, SetStack.Request(tasks=tasks))
+        assert response.success, response.message
+        start = fresh_status(probe)
+        assert task_status(start, "balance").error_norm == 0.0   # no polygon yet
+        sent = probe.status_count()
+        probe.publish_target("balance", sole_polygon(start, shift_x=0.16))
+        wait_until(lambda: task_status(probe.latest_status(), "balance").error_norm < 1e-4
+                   and probe.status_count() > sent + 50, 15,
+                   what="the CoM back inside the polygon")
+        with probe.lock:
+            errors = [task_status(status, "balance").error_norm
+                      for status in probe.statuses[sent:]]
+        outside = [error for error in errors if error > 0.0]
+        assert outside[0] > 0.02   # first outside by about the shift, then only closer
+        assert all(later <= earlier + 1e-6 for earlier, later in zip(outside, outside[1:]))
+        status = fresh_status(probe)
+        assert any(name.startswith("balance edge") for name in status.binding_constraints)
+        assert task_status(status, "left_foot").error_norm < 1e-4
+        two_points = sole_polygon(status)
+        two_points.polygon.points = two_points.polygon.points[:2]
+        rejected = status.rejected_inputs
+        probe.publish_target("balance", two_points)
+        wait_until(lambda: probe.latest_status().rejected_inputs > rejected, 10,
+                   what="the two-vertex polygon refused")
+        assert ">= 3 xy vertices" in probe.latest_status().last_rejection
+        assert task_status(fresh_status(probe), "balance").error_norm < 1e-4
     finally:
         probe.close()
         group.stop_all()

@@ -7,7 +7,7 @@ a message meant for the sender; nothing here touches a node.
 from __future__ import annotations
 
 import numpy as np
-from geometry_msgs.msg import Point, Pose
+from geometry_msgs.msg import Point, Polygon, Pose
 from stance.stack import AXES, FRAME_KINDS, KINDS, StackError, TaskSpec
 from stance.tasks import TargetError, pose_from_position_quaternion, require_finite
 from stance_msgs.msg import TaskSpec as TaskSpecMsg
@@ -25,6 +25,7 @@ KIND_CODES = {
     TaskSpecMsg.KIND_ORIENTATION: "orientation",
     TaskSpecMsg.KIND_COM: "com",
     TaskSpecMsg.KIND_POSTURE: "posture",
+    TaskSpecMsg.KIND_SUPPORT: "support",
 }
 AXIS_BITS = {axis: 1 << index for index, axis in enumerate(AXES)}
 assert set(KIND_CODES.values()) == set(KINDS)
@@ -73,6 +74,16 @@ def point_from_msg(point: Point) -> np.ndarray:
     position = require_finite((point.x, point.y, point.z), "position")
     check_position_bound(position)
     return position
+
+
+def polygon_from_msg(polygon: Polygon) -> np.ndarray:
+    """(vertices, 2) world xy (m) from a geometry_msgs/Polygon (z ignored); rejects NaN
+    and coordinates beyond MAX_POSITION (the task checks the rest: count, area)."""
+    vertices = require_finite([(point.x, point.y) for point in polygon.points],
+                              "polygon").reshape(-1, 2)
+    for vertex in vertices:
+        check_position_bound(vertex)
+    return vertices
 
 
 def check_position_bound(position) -> None:

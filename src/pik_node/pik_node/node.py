@@ -10,7 +10,7 @@ response, /pik/status.last_rejection, log) and never changes the node's state.
 Topics and services (QoS in parentheses; the per-step outputs keep 1000 samples, 2 s at
 500 Hz, so that a stalled reliable reader is repaired: see STREAM):
   sub  /pik/tasks/<name>/target   PoseStamped | PointStamped (com) | JointState (posture)
-                                  (reliable, keep last 10)
+                                  | PolygonStamped (support) (reliable, keep last 10)
   pub  /joint_states              sensor_msgs/JointState, actuated joints (reliable, 1000)
   pub  /pik/base_pose             geometry_msgs/PoseStamped, free-flyer in world
                                   (reliable, 1000)
@@ -40,7 +40,7 @@ import numpy as np
 import pinocchio as pin
 import rclpy
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PointStamped, PoseStamped
+from geometry_msgs.msg import PointStamped, PolygonStamped, PoseStamped
 from rcl_interfaces.msg import (FloatingPointRange, ParameterDescriptor,
                                 SetParametersResult)
 from rclpy.exceptions import InvalidParameterTypeException, ParameterException
@@ -61,7 +61,7 @@ from std_msgs.msg import Header, String
 
 from .conversions import (check_task_frames, check_within_limits, check_world_frame,
                           configuration_from_msg, joint_targets_from_msg, point_from_msg,
-                          se3_from_pose_msg, spec_from_msg)
+                          polygon_from_msg, se3_from_pose_msg, spec_from_msg)
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # The per-step outputs: two seconds of history at 500 Hz. A reliable reader whose process
@@ -72,7 +72,7 @@ STREAM = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 TARGET_TYPES = {"pose": PoseStamped, "position": PoseStamped, "orientation": PoseStamped,
-                "com": PointStamped, "posture": JointState}
+                "com": PointStamped, "posture": JointState, "support": PolygonStamped}
 
 
 class PikNode(Node):
@@ -226,6 +226,9 @@ class PikNode(Node):
             elif kind == "com":
                 check_world_frame(msg.header.frame_id)
                 task.set_target(point_from_msg(msg.point))
+            elif kind == "support":
+                check_world_frame(msg.header.frame_id)
+                task.set_target(polygon_from_msg(msg.polygon))
             else:
                 check_world_frame(msg.header.frame_id)
                 task.set_target(se3_from_pose_msg(msg.pose))
