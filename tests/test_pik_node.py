@@ -90,6 +90,8 @@ def test_target_moves_joint_states(pik):
     assert moved.max() > 0.05
     for level in status.levels[:2]:  # feet and CoM stay satisfied
         assert level.residual_norm < 1e-6
+        assert level.condition == "met"
+    assert {level.condition for level in status.levels} <= {"met", "conflict", "singular"}
 
 
 def bad_pose_targets():

@@ -394,6 +394,7 @@ class PikNode(Node):
         for level_msg, level in zip(status.levels, result.levels):
             level_msg.residual_norm = level.residual_norm
             level_msg.step_residual_norm = level.step_residual_norm
+            level_msg.condition = level.condition
         for task_msg in status.tasks:
             task_msg.error_norm = result.task_errors[task_msg.name]
             target, current = self.solver.task_poses(task_msg.name)

@@ -27,8 +27,9 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from .hierarchy import (DampedHierarchy, HierarchySolution, excludes_zero, level_start_state,
-                        restartable_solution, solve_compiled, solve_levels)
+from .hierarchy import (DampedHierarchy, HierarchySolution, _damped_least_squares,
+                        excludes_zero, level_start_state, restartable_solution,
+                        solve_compiled, solve_levels)
 from .limits import RevoluteLimits, fix_joints, make_strategy
 from .qp_hierarchy import Inequalities, QPHierarchy, cascade_compiled, empty_cascade_state
 from .robot import RobotModelError
@@ -38,12 +39,20 @@ from .tasks import (ComTask, FrameTask, FrameTaskBatch, SupportTask, capped_step
                     make_task, step_cap_groups)
 
 
+MET_RELATIVE = 1e-3   # a level whose step residual is below this x its step is met
+
+
 @dataclass
 class LevelReport:
     priority: int
     tasks: list
     residual_norm: float        # |sqrt(w) e| stacked over the level's tasks, at q
     step_residual_norm: float   # |J dq - step| the hierarchy left, task units
+    condition: str = "met"      # met: step residual <= MET_RELATIVE x |step|; singular:
+    #                             its own rows, damped as in the hierarchy, cannot give its
+    #                             step either (rank-deficient or contradictory rows, a
+    #                             stretched limb); conflict: they could, but higher levels,
+    #                             clamped joints or bounds take what it needs
 
 
 @dataclass
@@ -235,7 +244,7 @@ class PIKSolver:
         if self.strategy.enforces_limits:
             for model in self.limit_models:
                 model.keep_inside(q, q_next)
-        levels, task_errors = self._reports(q, error, step_residuals)
+        levels, task_errors = self._reports(q, error, step_residuals, jacobian, target)
         fixed[self._locked_v] = False       # reported: fixed by the limits
         return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors,
                           damping=h[self._dof_v_index], clamped=fixed[self._dof_v_index],
@@ -387,15 +396,17 @@ class PIKSolver:
                        layout.row_scale, target)
         return jacobian, target, error
 
-    def _reports(self, q, error, step_residuals):
+    def _reports(self, q, error, step_residuals, jacobian, target):
         layout = self._layout
         norms = layout.error_norms
         _error_norms(error, layout.task_starts, layout.offsets, layout.row_scale, norms)
         norms = norms.tolist()  # Python floats without one call per value
         task_count = len(layout.task_names)
         task_errors = dict(zip(layout.task_names, norms[:task_count]))
+        step_residuals = np.asarray(step_residuals, dtype=float).tolist()
         levels = list(map(LevelReport, layout.priorities, layout.level_tasks,
-                          norms[task_count:], np.asarray(step_residuals, dtype=float).tolist()))
+                          norms[task_count:], step_residuals,
+                          self._conditions(jacobian, target, step_residuals)))
         for task in layout.disabled_tasks:
             _, task_error = task.jacobian_and_error(self.robot, q)
             task_errors[task.name] = float(np.linalg.norm(task_error))
@@ -403,6 +414,25 @@ class PIKSolver:
             if isinstance(task, SupportTask):   # an inequality: its distance outside
                 task_errors[task.name] = task.distance_outside(self.robot)
         return levels, task_errors
+
+    def _conditions(self, jacobian, target, step_residuals) -> list:
+        """LevelReport.condition of each level with tasks (the strategy's extra levels,
+        last, are not reported)."""
+        conditions = []
+        offsets = self._layout.offsets
+        damping_sq = getattr(self._unconstrained, "damping", 0.0) ** 2
+        for level, residual in enumerate(step_residuals[:len(offsets) - 1]):
+            rows = slice(offsets[level], offsets[level + 1])
+            wanted = target[rows]
+            met = MET_RELATIVE * float(np.linalg.norm(wanted))
+            if residual <= met:
+                conditions.append("met")
+                continue
+            alone = _damped_least_squares(np.ascontiguousarray(jacobian[rows]), wanted,
+                                          damping_sq)
+            missed = float(np.linalg.norm(jacobian[rows] @ alone - wanted))
+            conditions.append("singular" if missed > met else "conflict")
+        return conditions
 
     def _support_inequalities(self):
         """The enabled support tasks' Inequalities at robot.data's kinematics (None without

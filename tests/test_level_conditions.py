@@ -1,0 +1,70 @@
+"""Each level's condition in a step's report: met, conflict (higher levels, limits or
+bounds take what it needs) or singular (its own rows cannot give its step): a singular or
+contradictory stack returns a solution and says so."""
+
+import numpy as np
+import pytest
+
+from stance.pik import PIKSolver
+from stance.robot import Robot
+from stance.stack import parse_stack_yaml
+from stance_tools.bench import bench_start
+
+FEET = """
+- {name: left_foot, kind: pose, frame: left_sole_link, priority: 0, gain: 0.5}
+- {name: right_foot, kind: pose, frame: right_sole_link, priority: 0, gain: 0.5}
+"""
+
+
+@pytest.fixture(scope="module")
+def talos():
+    return Robot.from_example_robot_data("talos")
+
+
+def stepped(robot, stack, moves, hierarchy, steps=3):
+    """The report of the last of `steps` steps, pose targets moved by `moves` (m, world)."""
+    q = bench_start(robot)
+    solver = PIKSolver(robot, hierarchy=hierarchy, dt=0.002)
+    solver.set_stack(parse_stack_yaml(FEET + stack), q)
+    for name, offset in moves.items():
+        target = solver.task(name).target
+        target.translation += np.asarray(offset, dtype=float)
+        solver.task(name).set_target(target)
+    for _ in range(steps):
+        result = solver.step(q)
+        q = result.q
+    assert np.all(np.isfinite(result.q))
+    return {level.priority: level for level in result.levels}
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+def test_reachable_levels_are_met(talos, hierarchy):
+    levels = stepped(talos, """
+- {name: hand, kind: position, frame: gripper_right_base_link, priority: 1, gain: 0.1}
+- {name: posture, kind: posture, priority: 2, gain: 0.02}
+""", {"hand": (0.05, 0.0, 0.05)}, hierarchy)
+    assert levels[0].condition == levels[1].condition == "met"
+    assert levels[2].condition == "conflict"   # the hand's level takes part of the posture's
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+def test_a_level_contradicting_a_higher_one_is_a_conflict(talos, hierarchy):
+    """The same hand at level 1 and, 0.1 m higher, at level 2."""
+    levels = stepped(talos, """
+- {name: hand, kind: position, frame: gripper_right_base_link, priority: 1, gain: 0.1}
+- {name: hand_again, kind: position, frame: gripper_right_base_link, priority: 2, gain: 0.1}
+""", {"hand_again": (0.0, 0.0, 0.1)}, hierarchy)
+    assert levels[1].condition == "met"
+    assert levels[2].condition == "conflict"
+    assert levels[2].step_residual_norm > 1e-3
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+def test_contradictory_rows_of_one_level_are_singular(talos, hierarchy):
+    """Two targets 0.1 m apart for the same hand in one level: no dq gives both."""
+    levels = stepped(talos, """
+- {name: hand, kind: position, frame: gripper_right_base_link, priority: 1, gain: 0.1}
+- {name: hand_again, kind: position, frame: gripper_right_base_link, priority: 1, gain: 0.1}
+""", {"hand_again": (0.0, 0.0, 0.1)}, hierarchy)
+    assert levels[0].condition == "met"
+    assert levels[1].condition == "singular"
