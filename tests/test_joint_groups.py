@@ -143,6 +143,27 @@ def test_a_group_decision_keeps_joints_fixed_earlier_and_the_swing_inside(talos,
     assert model.domain.signed_distance(s_reached) >= -SWING_TOLERANCE
 
 
+@pytest.mark.parametrize("progressive", [True, False])
+def test_an_unmoved_group_outside_its_cone_goes_back(talos, groups, progressive):
+    """The right shoulder 0.1-0.3 rad outside its cone, no task moving it (dq = 0): its
+    joints are fixed to variations that bring the swing back inside."""
+    rng = np.random.default_rng(7)
+    model = next(model for model in groups if model.name == "right_shoulder")
+    q, nv = talos.initial_configuration(), talos.model.nv
+    fixed, fixed_dq, h = np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv)
+    assert not model.fix(q, np.zeros(nv), fixed, fixed_dq, h, progressive)  # inside: none
+    for _ in range(10000):
+        q[model.q_index] = rng.uniform(model.bounds.lower, model.bounds.upper)
+        if -0.3 < model.domain.signed_distance(swing_twist(model.rotation(q))[0]) < -0.1:
+            break
+    assert swing_excess(model, q) > 0.1
+    assert model.fix(q, np.zeros(nv), fixed, fixed_dq, h, progressive)
+    back = q.copy()
+    back[model.q_index] += np.where(fixed[model.v_index], fixed_dq[model.v_index], 0.0)
+    assert swing_excess(model, back) <= SWING_TOLERANCE
+    assert bound_excess(model, back) <= 1e-9
+
+
 @settings(max_examples=200, deadline=None, derandomize=True, database=None)
 @given(v=st.lists(st.one_of(st.floats(-4.0, 4.0), st.floats(-1e-4, 1e-4)), min_size=3,
                   max_size=3))

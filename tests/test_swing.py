@@ -510,6 +510,28 @@ def test_a_joint_started_outside_moves_back_and_never_further_out(
     assert excess[:, 1].max() <= TWIST_TOLERANCE
 
 
+@pytest.mark.parametrize("progressive", [True, False])
+def test_an_unmoved_ball_joint_outside_goes_back_and_one_inside_stays(mannequin,
+                                                                      limit_models,
+                                                                      progressive):
+    """No task moves the joint (dq = 0): outside its swing limit and twist bound, its
+    variation is fixed to one back onto them; inside, nothing is fixed."""
+    model = next(model for model in limit_models if isinstance(model, BallLimit)
+                 and model.twist is not None and model.twist.upper[0] > model.twist.lower[0])
+    q, nv = mannequin.initial_configuration("standing"), mannequin.model.nv
+    fixed, fixed_dq, h = np.zeros(nv, dtype=bool), np.zeros(nv), np.zeros(nv)
+    assert not model.fix(q, np.zeros(nv), fixed, fixed_dq, h, progressive)
+    s, _ = swing_twist(model.rotation(q))
+    boundary = model.domain.closest_boundary_point(s)
+    set_swing_twist(mannequin, q, model.joint, boundary + 0.2 * model.domain.normal_at(boundary),
+                    model.twist.upper[0] + 0.2)
+    assert swing_excess(model, q) > 0.1 and twist_excess(model, q) > 0.1
+    assert model.fix(q, np.zeros(nv), fixed, fixed_dq, h, progressive)
+    back = pin.integrate(mannequin.model, q, np.where(fixed, fixed_dq, 0.0))
+    assert swing_excess(model, back) <= SWING_TOLERANCE
+    assert twist_excess(model, back) <= TWIST_TOLERANCE
+
+
 def test_strategy_none_lets_swings_leave_their_limits(mannequin, limit_models):
     """Sanity check of the harness: without a limit strategy the same runs leave limits."""
     start = mannequin.initial_configuration("standing")

@@ -589,9 +589,9 @@ def ball_fix(ball, q, dq, progressive, fixed, fixed_dq, h):
             return False
         moving += dq[first + k] * dq[first + k]
     reach = math.sqrt(moving)
-    if reach <= NEGLIGIBLE_VARIATION:
-        return False
     rotation, s, theta, distance = _ball_state(ball, q)
+    if reach <= NEGLIGIBLE_VARIATION and not _may_reach(s, theta, distance, 0.0, 0.0, rule[2]):
+        return False    # unmoved inside (a joint outside its limits goes back even unmoved)
     if not _may_reach(s, theta, distance, reach, rule[1], rule[2]):
         return False
     altered, target, swing_h, twist_h = _altered(
@@ -777,12 +777,14 @@ def group_fix(group, q, dq, progressive, fixed, fixed_dq, h):
         angles[j], variation[j], movable[j] = q[q_index[j]], dq[v_index[j]], not fixed[v_index[j]]
         if movable[j]:
             moving += variation[j] * variation[j]
-    if math.sqrt(moving) <= NEGLIGIBLE_VARIATION:
-        return False
-    group_h, altered = np.zeros(count), np.zeros(count, dtype=np.bool_)
     rotation = _group_rotation(placements, axis_index, angles)[0]
     s, theta = swing_twist(rotation)
     distance = _domain_distance(geometry, s)
+    if math.sqrt(moving) <= NEGLIGIBLE_VARIATION and \
+            not _may_reach(s, theta, distance, 0.0, 0.0, twist_table) and \
+            np.all((bounds[1][0] <= angles) & (angles <= bounds[1][1])):
+        return False    # unmoved inside (a group outside its limits goes back even unmoved)
+    group_h, altered = np.zeros(count), np.zeros(count, dtype=np.bool_)
     if _may_reach(s, theta, distance, np.sum(np.abs(variation)), thickness, twist_table):
         changed, target, swing_h, twist_h = _altered(
             rule, s, theta, distance,
