@@ -22,9 +22,9 @@ from stance.qp_hierarchy import (CERTIFIED, COLD_MAX_ITERATIONS, INNER_MAX_ITERA
                                  _polish, robot_dof_names)
 from stance.robot import Robot
 from stance.stack import parse_stack_yaml
-from stance_tools.bench import (GROUP_SCENARIOS, HANDS_FORWARD, TALOS_LEVEL_STACK,
-                                StanceContender, bench_start, bench_targets,
-                                level_contenders, limit_excess)
+from stance_tools.bench import (GRIPPER_JOINTS, GROUP_SCENARIOS, HANDS_FORWARD,
+                                TALOS_LEVEL_STACK, StanceContender, bench_start,
+                                bench_targets, level_contenders, limit_excess)
 
 DAMPING = 1e-3
 AGREEMENT = 1e-7          # rad: QPHierarchy vs DampedHierarchy without binding bounds
@@ -300,9 +300,9 @@ def talos():
     return Robot.from_example_robot_data("talos")
 
 
-def talos_solver(robot, q, hierarchy, hand_offset, dt=None):
+def talos_solver(robot, q, hierarchy, hand_offset, dt=None, locked_joints=()):
     solver = PIKSolver(robot, strategy="progressive", damping=DAMPING, dt=dt,
-                       hierarchy=hierarchy)
+                       hierarchy=hierarchy, locked_joints=locked_joints)
     solver.set_stack(default_stack_specs(), q)
     hand = solver.task("right_hand")
     target = hand.target
@@ -312,14 +312,39 @@ def talos_solver(robot, q, hierarchy, hand_offset, dt=None):
 
 
 def test_talos_steps_agree_with_the_damped_hierarchy_inside_the_limits(talos):
+    """Outside every damping zone (the grippers, which start inside theirs, locked; until
+    the torso reaches its zone): no bound binds and the steps are the damped hierarchy's."""
+    q = bench_start(talos)
+    offset = [0.1, -0.1, 0.1]
+    damped = talos_solver(talos, q, None, offset, locked_joints=GRIPPER_JOINTS)
+    bounded = talos_solver(talos, q, QPHierarchy.for_robot(talos, damping=DAMPING), offset,
+                           locked_joints=GRIPPER_JOINTS)
+    for step in range(30):
+        expected, result = damped.step(q), bounded.step(q)
+        if expected.damping.any():
+            break
+        assert result.binding_constraints == []
+        np.testing.assert_allclose(result.dq, expected.dq, rtol=0, atol=AGREEMENT)
+        q = expected.q
+    assert step >= 8
+
+
+def test_a_damped_joint_never_moves_toward_its_limit_beyond_its_damped_variation(talos):
+    """Progressive clamping on the QP hierarchy bounds a joint in its damping zone by the
+    damped variation rather than fixing it there: it never moves toward its limit by more
+    than the damped hierarchy's damped variation (the same decision: the same first
+    solution)."""
     q = bench_start(talos)
     offset = [0.1, -0.1, 0.1]
     damped = talos_solver(talos, q, None, offset)
     bounded = talos_solver(talos, q, QPHierarchy.for_robot(talos, damping=DAMPING), offset)
     for _ in range(30):
         expected, result = damped.step(q), bounded.step(q)
-        assert result.binding_constraints == []
-        np.testing.assert_allclose(result.dq, expected.dq, rtol=0, atol=AGREEMENT)
+        zone = (expected.damping > 0.0) & (expected.damping < 1.0)
+        assert zone.any()
+        v = bounded._dof_v_index[zone]
+        toward = np.sign(expected.dq[v])
+        assert np.all(toward * result.dq[v] <= toward * expected.dq[v] + AGREEMENT)
         q = expected.q
 
 

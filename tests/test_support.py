@@ -258,3 +258,36 @@ def test_bad_polygons_are_refused_and_the_old_one_kept(talos, vertices, message)
     with pytest.raises(TargetError, match=message):
         task.set_target(vertices)
     np.testing.assert_array_equal(task.vertices, before)
+
+
+SOAK_EPISODES, SOAK_STEPS = 20, 100   # 2,000 random steps on the QP hierarchy
+
+
+def test_random_episodes_keep_the_com_inside_or_bring_it_back(talos):
+    """Random hand targets (reachable or 1-1.5 m away) and polygons (the soles' hull,
+    sometimes moved so that the CoM starts up to 4 cm outside): no step takes the CoM
+    further out than one linearized step's second-order error, it ends inside, and no
+    joint leaves its limits."""
+    q0 = bench_start(talos)
+    soles = feet_polygon(talos, q0)
+    for seed in range(SOAK_EPISODES):
+        rng = np.random.default_rng(seed)
+        polygon = soles + (rng.uniform(-0.04, 0.04, 2) if rng.random() < 0.5 else 0.0)
+        solver = PIKSolver(talos, hierarchy="qp", dt=0.002)
+        solver.set_stack(parse_stack_yaml(SUPPORT_STACK), q0)
+        solver.task("balance").set_target(polygon)
+        hand = solver.task("right_hand")
+        target = hand.target
+        reach = 1.5 if rng.random() < 0.3 else 0.4
+        target.translation += rng.uniform(-reach, reach, 3)
+        hand.set_target(target)
+        q, distances = q0.copy(), []
+        for _ in range(SOAK_STEPS + 1):
+            result = solver.step(q)    # its report: the CoM's distance outside at q
+            distances.append(result.task_errors["balance"])
+            assert np.all(q[talos.limited_q_index] <= talos.upper + 1e-9), seed
+            assert np.all(q[talos.limited_q_index] >= talos.lower - 1e-9), seed
+            q = result.q
+        for before, after in zip(distances, distances[1:]):
+            assert after <= before + SECOND_ORDER, seed
+        assert distances[-1] <= SECOND_ORDER, seed

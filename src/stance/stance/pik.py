@@ -62,7 +62,8 @@ class StepResult:
     levels: list                # LevelReport per level with enabled tasks, highest first
     task_errors: dict           # task name -> |e| over its selected axes at q (m, rad)
     damping: np.ndarray         # h per limited DoF (0 free, 1 clamped on a limit)
-    clamped: np.ndarray         # bool per limited DoF: variation fixed in the loop
+    clamped: np.ndarray         # bool per limited DoF: variation fixed in the loop (QP: a
+    #                             damped 1-DoF joint bounded by it, _damping_bounds)
     clamping_iterations: int    # hierarchy solutions evaluated
     solve_time: float           # s
     velocity_scale: float = 1.0  # velocity limits: factor on the first level that had to
@@ -261,13 +262,24 @@ class PIKSolver:
         tasks' (QPHierarchy's Inequalities), None without any."""
         iterations = 0
         rows = {} if inequalities is None else {"inequalities": inequalities}
+        solve_bounds = bounds    # those `solution` was solved with, if any
+        if bounds is not None and solution is not None:
+            solve_bounds = _damping_bounds(fixed, fixed_dq, h, self.limits.v_index, *bounds)[1:]
         while True:
-            index = fixed.nonzero()[0]
+            equal, previous_bounds = fixed, solve_bounds
+            if bounds is not None:     # damped joints bounded, not fixed (_damping_bounds)
+                equal, lower, upper = _damping_bounds(fixed, fixed_dq, h, self.limits.v_index,
+                                                      *bounds)
+                solve_bounds = (lower, upper)
+                if not (np.array_equal(lower, previous_bounds[0])
+                        and np.array_equal(upper, previous_bounds[1])):
+                    solution = None    # new bounds: a fresh solve, no restart
+            index = equal.nonzero()[0]
             restart = {} if getattr(solution, "restart", None) is None else \
                 {"previous": solution}  # re-solve only the levels the new fixes touch
             solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
-                                                    fixed_dq[index], bounds=bounds, **restart,
-                                                    **rows)
+                                                    fixed_dq[index], bounds=solve_bounds,
+                                                    **restart, **rows)
             iterations += 1
             changed = False
             for model in self.limit_models:
@@ -299,9 +311,11 @@ class PIKSolver:
          solved_values, level_bases, level_ranks, level_starts) = _clamping_loop(
             jacobian, target, offsets, q, limits.indices, limits.table, self._groups,
             self._balls, self.strategy.progressive, fixed, fixed_dq, h, unconstrained.damping,
-            unconstrained.rank_tolerance, lower, upper, cascades, cascade_state)
+            unconstrained.rank_tolerance, lower, upper, cascades, cascade_state,
+            limits.v_index)
         if finished and cascaded:
             enforced = cascade_state[-2]    # scratch arrays: the next step reuses them
+            _, lower, upper = _damping_bounds(fixed, fixed_dq, h, limits.v_index, lower, upper)
             return hierarchy.cascade_solution(dq, residuals.copy(), enforced, lower,
                                               upper), iterations, True
         if finished:
@@ -476,14 +490,16 @@ class PIKSolver:
 
 @numba.njit(cache=True)
 def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, groups, balls,
-                   progressive, fixed, fixed_dq, h, damping, rank_tolerance, lower, upper,
-                   cascades, cascade_state):
+                   progressive, fixed, fixed_dq, h, damping, rank_tolerance, bound_lower,
+                   bound_upper, cascades, cascade_state, revolute_v):
     """PIKSolver._clamping for DampedHierarchy, RevoluteLimits (the indices and table
     of limits.fix_joints), joint groups (swing.group_fix's arguments, or NO_GROUP) and
     spherical joints (swing.ball_fix's, or NO_BALL) in one call: each solution restarts
     from the previous one's levels (hierarchy.solve_compiled); fixed, fixed_dq and h (nv)
     are filled in place.
-    lower, upper: QPHierarchy's bounds on dq (nv each; empty: none). A solution whose
+    bound_lower, bound_upper: QPHierarchy's bounds on dq (nv each; empty: none), with the
+    damped 1-DoF joints (revolute_v: their v indices) bounded, not fixed (_damping_bounds).
+    A solution whose
     levels leave them (first_level_out_of_bounds), or that starts outside them, is
     QPHierarchy's cascade (qp_hierarchy.cascade_compiled) when `cascades`, with
     cascade_state = (KeptActiveSets' four arrays, the hierarchy's counters, enforced
@@ -504,8 +520,18 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
     no_fixed, no_values = np.zeros(0, dtype=np.bool_), np.zeros(0)
     solved_fixed, solved_values = no_fixed, no_values   # none yet: a fresh solve
     solutions = 0
+    lower, upper = bound_lower, bound_upper
     while True:
-        now_fixed, values = fixed.copy(), fixed_dq.copy()   # fixed_dq is 0 where free
+        if len(bound_lower):
+            previous_lower, previous_upper = lower, upper
+            now_fixed, lower, upper = _damping_bounds(fixed, fixed_dq, h, revolute_v,
+                                                      bound_lower, bound_upper)
+            if not (np.array_equal(lower, previous_lower)
+                    and np.array_equal(upper, previous_upper)):
+                solved_fixed, solved_values = no_fixed, no_values   # new bounds: fresh
+        else:
+            now_fixed = fixed.copy()
+        values = np.where(now_fixed, fixed_dq, 0.0)
         dq = values
         if len(lower) and excludes_zero(now_fixed, lower, upper):
             first = -1              # QPHierarchy cascades at once, no unconstrained solve
@@ -543,6 +569,26 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
                     level_starts)
         solved_fixed, solved_values = (no_fixed, no_values) if cascaded else \
             (now_fixed, values)
+
+
+@numba.njit(cache=True)
+def _damping_bounds(fixed, fixed_dq, h, revolute_v, lower, upper):
+    """(fixed as equalities, lower, upper) for the QP hierarchy: a 1-DoF joint the
+    progressive clamping damped (0 < h < 1, revolute_v: the 1-DoF joints' v indices) is
+    not fixed to its damped variation but bounded by it on the side it moves (the
+    component toward its limit is damped, eq. 1-5): it may move less, or back, where the
+    levels above need it to, which hard velocity bounds on the other joints could
+    otherwise forbid (the CoM level then drifted with an arm stretched out of reach).
+    Clamped joints (h = 1), and every other fixed DoF, stay equalities."""
+    equal, low, high = fixed.copy(), lower.copy(), upper.copy()
+    for v in revolute_v:
+        if fixed[v] and 0.0 < h[v] < 1.0 and fixed_dq[v] != 0.0:
+            equal[v] = False
+            if fixed_dq[v] > 0.0:
+                high[v] = min(high[v], fixed_dq[v])
+            else:
+                low[v] = max(low[v], fixed_dq[v])
+    return equal, low, high
 
 
 @numba.njit(cache=True)
