@@ -48,23 +48,16 @@ def test_reachable_levels_are_met(talos, hierarchy):
 
 
 @pytest.mark.parametrize("hierarchy", ["svd", "qp"])
-def test_a_level_contradicting_a_higher_one_is_a_conflict(talos, hierarchy):
-    """The same hand at level 1 and, 0.1 m higher, at level 2."""
-    levels = stepped(talos, """
-- {name: hand, kind: position, frame: gripper_right_base_link, priority: 1, gain: 0.1}
-- {name: hand_again, kind: position, frame: gripper_right_base_link, priority: 2, gain: 0.1}
-""", {"hand_again": (0.0, 0.0, 0.1)}, hierarchy)
-    assert levels[1].condition == "met"
-    assert levels[2].condition == "conflict"
-    assert levels[2].step_residual_norm > 1e-3
-
-
-@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
-def test_contradictory_rows_of_one_level_are_singular(talos, hierarchy):
-    """Two targets 0.1 m apart for the same hand in one level: no dq gives both."""
-    levels = stepped(talos, """
-- {name: hand, kind: position, frame: gripper_right_base_link, priority: 1, gain: 0.1}
-- {name: hand_again, kind: position, frame: gripper_right_base_link, priority: 1, gain: 0.1}
+@pytest.mark.parametrize("priority, condition", [(2, "conflict"), (1, "singular")])
+def test_a_contradicting_level_is_a_conflict_contradicting_rows_are_singular(
+        talos, hierarchy, priority, condition):
+    """The same hand at level 1 and, 0.1 m higher, at level 2 (the higher level takes what
+    the lower needs: conflict) or also at level 1 (no dq gives both: singular)."""
+    levels = stepped(talos, f"""
+- {{name: hand, kind: position, frame: gripper_right_base_link, priority: 1, gain: 0.1}}
+- {{name: hand_again, kind: position, frame: gripper_right_base_link, priority: {priority},
+   gain: 0.1}}
 """, {"hand_again": (0.0, 0.0, 0.1)}, hierarchy)
     assert levels[0].condition == "met"
-    assert levels[1].condition == "singular"
+    assert levels[priority].condition == condition
+    assert levels[priority].step_residual_norm > 1e-3

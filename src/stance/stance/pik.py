@@ -19,6 +19,7 @@ One IK step from configuration q:
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,11 +49,18 @@ class LevelReport:
     tasks: list
     residual_norm: float        # |sqrt(w) e| stacked over the level's tasks, at q
     step_residual_norm: float   # |J dq - step| the hierarchy left, task units
-    condition: str = "met"      # met: step residual <= MET_RELATIVE x |step|; singular:
-    #                             its own rows, damped as in the hierarchy, cannot give its
-    #                             step either (rank-deficient or contradictory rows, a
-    #                             stretched limb); conflict: they could, but higher levels,
-    #                             clamped joints or bounds take what it needs
+    decide_condition: object = field(default="met", repr=False)  # its condition, or what
+    #                             computes it at the first read (a reader pays for it)
+
+    @property
+    def condition(self) -> str:
+        """met: step residual <= MET_RELATIVE x |step|; singular: the level's own rows,
+        damped as in the hierarchy, cannot give its step either (rank-deficient or
+        contradictory rows, a stretched limb); conflict: they could, but higher levels,
+        clamped joints or bounds take what it needs."""
+        if callable(self.decide_condition):
+            self.decide_condition = self.decide_condition()
+        return self.decide_condition
 
 
 @dataclass
@@ -430,23 +438,15 @@ class PIKSolver:
         return levels, task_errors
 
     def _conditions(self, jacobian, target, step_residuals) -> list:
-        """LevelReport.condition of each level with tasks (the strategy's extra levels,
-        last, are not reported)."""
-        conditions = []
+        """LevelReport.decide_condition of each level with tasks (the strategy's extra
+        levels, last, are not reported): what decides it at the first read, on one copy
+        of the step's rows shared by the levels (the solver's arrays are reused next
+        step; a step whose report nobody reads pays the copy only)."""
         offsets = self._layout.offsets
-        damping_sq = getattr(self._unconstrained, "damping", 0.0) ** 2
-        for level, residual in enumerate(step_residuals[:len(offsets) - 1]):
-            rows = slice(offsets[level], offsets[level + 1])
-            wanted = target[rows]
-            met = MET_RELATIVE * float(np.linalg.norm(wanted))
-            if residual <= met:
-                conditions.append("met")
-                continue
-            alone = _damped_least_squares(np.ascontiguousarray(jacobian[rows]), wanted,
-                                          damping_sq)
-            missed = float(np.linalg.norm(jacobian[rows] @ alone - wanted))
-            conditions.append("singular" if missed > met else "conflict")
-        return conditions
+        problem = (jacobian[:offsets[-1]].copy(), target[:offsets[-1]].copy(), offsets,
+                   getattr(self._unconstrained, "damping", 0.0) ** 2)
+        return [functools.partial(_level_condition, problem, level, residual)
+                for level, residual in enumerate(step_residuals[:len(offsets) - 1])]
 
     def _support_inequalities(self):
         """The enabled support tasks' Inequalities at robot.data's kinematics (None without
@@ -701,6 +701,19 @@ HIERARCHIES = ("svd", "qp")
 
 # _clamping_loop's cascade_state (QPHierarchy.cascade_state) for a hierarchy without cascades
 _NO_CASCADE_STATE = empty_cascade_state(0, 0, np.zeros(1, dtype=np.int64))
+
+
+def _level_condition(problem, level, step_residual) -> str:
+    """LevelReport.condition of a level of problem = (stacked rows, targets, level
+    offsets, damping^2), which the hierarchy left with this step residual."""
+    jacobian, target, offsets, damping_sq = problem
+    rows = jacobian[offsets[level]:offsets[level + 1]]
+    wanted = target[offsets[level]:offsets[level + 1]]
+    met = MET_RELATIVE * float(np.linalg.norm(wanted))
+    if step_residual <= met:
+        return "met"
+    alone = _damped_least_squares(rows, wanted, damping_sq)
+    return "singular" if float(np.linalg.norm(rows @ alone - wanted)) > met else "conflict"
 
 
 def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):
