@@ -19,7 +19,6 @@ One IK step from configuration q:
 
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,8 +48,8 @@ class LevelReport:
     tasks: list
     residual_norm: float        # |sqrt(w) e| stacked over the level's tasks, at q
     step_residual_norm: float   # |J dq - step| the hierarchy left, task units
-    decide_condition: object = field(default="met", repr=False)  # its condition, or what
-    #                             computes it at the first read (a reader pays for it)
+    decide_condition: object = field(default="met", repr=False)  # its condition, or the
+    #                             arguments of _level_condition, run at the first read
 
     @property
     def condition(self) -> str:
@@ -58,8 +57,8 @@ class LevelReport:
         damped as in the hierarchy, cannot give its step either (rank-deficient or
         contradictory rows, a stretched limb); conflict: they could, but higher levels,
         clamped joints or bounds take what it needs."""
-        if callable(self.decide_condition):
-            self.decide_condition = self.decide_condition()
+        if not isinstance(self.decide_condition, str):
+            self.decide_condition = _level_condition(*self.decide_condition)
         return self.decide_condition
 
 
@@ -431,21 +430,21 @@ class PIKSolver:
                           self._conditions(jacobian, target, step_residuals)))
         for task in layout.disabled_tasks:
             _, task_error = task.jacobian_and_error(self.robot, q)
-            task_errors[task.name] = float(np.linalg.norm(task_error))
-        for task in self.tasks.values():
-            if isinstance(task, SupportTask):   # an inequality: its distance outside
-                task_errors[task.name] = task.distance_outside(self.robot)
+            task_errors[task.name] = task.distance_outside(self.robot) \
+                if isinstance(task, SupportTask) else float(np.linalg.norm(task_error))
+        for task, _ in layout.support_tasks:    # an inequality: its distance outside
+            task_errors[task.name] = task.distance_outside(self.robot)
         return levels, task_errors
 
     def _conditions(self, jacobian, target, step_residuals) -> list:
         """LevelReport.decide_condition of each level with tasks (the strategy's extra
-        levels, last, are not reported): what decides it at the first read, on one copy
-        of the step's rows shared by the levels (the solver's arrays are reused next
-        step; a step whose report nobody reads pays the copy only)."""
+        levels, last, are not reported): _level_condition's arguments, on one copy of the
+        step's rows shared by the levels (the solver's arrays are reused next step; a
+        step whose report nobody reads pays the copy only)."""
         offsets = self._layout.offsets
         problem = (jacobian[:offsets[-1]].copy(), target[:offsets[-1]].copy(), offsets,
                    getattr(self._unconstrained, "damping", 0.0) ** 2)
-        return [functools.partial(_level_condition, problem, level, residual)
+        return [(problem, level, residual)
                 for level, residual in enumerate(step_residuals[:len(offsets) - 1])]
 
     def _support_inequalities(self):

@@ -770,6 +770,8 @@ def group_fix(group, q, dq, progressive, fixed, fixed_dq, h):
     placements, axis_index, q_index, v_index = kinematics
     geometry, thickness, twist_table = rule
     count = len(q_index)
+    if count == 0:      # NO_GROUP
+        return False
     angles, variation = np.empty(count), np.empty(count)
     movable = np.empty(count, dtype=np.bool_)
     moving = 0.0
