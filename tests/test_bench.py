@@ -1,5 +1,6 @@
-"""`stance bench pik`, `levels`, `groups` and `support` run a few steps and report what they promise:
-every contender's median, p99 and worst step, and the ratios they exist for."""
+"""`stance bench pik`, `levels`, `groups` and `support` run a few steps and report what
+they promise: every contender's median, p99 and worst step, and the ratios they exist
+for."""
 
 import json
 
