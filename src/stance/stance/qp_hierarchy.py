@@ -1,7 +1,9 @@
-"""Strict task priorities under per-DoF bounds on dq: a cascade of small QPs (ProxSuite).
+"""Strict task priorities under bounds on dq: a cascade of small QPs (ProxSuite).
 
 Same levels and damping as DampedHierarchy, plus bounds lower <= dq <= upper (rad or m:
-joint limits and velocity limits over one step). Level i works in the orthonormal basis Z
+joint limits, velocity limits over one step, progressive clamping's damped variations)
+and, per level, inequality rows (Inequalities, e.g. a support polygon's edges: see
+QPHierarchy._row_cascade; the rest of this docstring is the bounds-only cascade). Level i works in the orthonormal basis Z
 (nv x k) of what the fixed DoFs and levels 0..i-1 leave free, dq = dq_prev + Z y:
 
     minimize |P y - r|^2 + lambda^2 |y|^2
