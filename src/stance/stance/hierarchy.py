@@ -165,8 +165,8 @@ def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_valu
     (non-empty) and allow it (level_steps and residuals are then that solution's copies),
     else solve from the first level; arrays filled in place as by solve_levels, which
     stops at a level whose dq leaves the bounds lower, upper on dq (nv each; empty: none).
-    Returns (dq, that level or the level count: first_level_out_of_bounds of the solution
-    when its levels before the restart were within the bounds)."""
+    Returns (dq, that level or the level count: first_level_out_of_bounds of the solution,
+    the levels kept by a restart included, since the bounds may have changed since)."""
     first = -1
     if len(old_fixed):
         first, dq, basis = _restart_point(jacobian, offsets, old_fixed, old_values, fixed,
@@ -176,9 +176,14 @@ def solve_compiled(jacobian, target, offsets, fixed, values, old_fixed, old_valu
         first, dq, basis = 0, values.copy(), _free_axes(fixed)
         level_steps[:] = 0.0
         residuals[:] = 0.0
-    return solve_levels(jacobian, target, offsets, first, dq, basis, level_steps, residuals,
-                        level_bases, level_ranks, level_starts, damping, rank_tolerance,
-                        fixed, lower, upper)
+    dq, level = solve_levels(jacobian, target, offsets, first, dq, basis, level_steps,
+                             residuals, level_bases, level_ranks, level_starts, damping,
+                             rank_tolerance, fixed, lower, upper)
+    if len(lower) and first > 0:    # the kept levels against these bounds
+        kept = first_level_out_of_bounds(level_starts[:first + 1], fixed, lower, upper)
+        if kept < first:
+            return level_starts[kept + 1].copy(), kept
+    return dq, level
 
 
 @numba.njit(cache=True)

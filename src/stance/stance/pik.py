@@ -269,18 +269,12 @@ class PIKSolver:
         tasks' (QPHierarchy's Inequalities), None without any."""
         iterations = 0
         rows = {} if inequalities is None else {"inequalities": inequalities}
-        solve_bounds = bounds    # those `solution` was solved with, if any
-        if bounds is not None and solution is not None:
-            solve_bounds = _damping_bounds(fixed, fixed_dq, h, self.limits.v_index, *bounds)[1:]
         while True:
-            equal, previous_bounds = fixed, solve_bounds
+            equal, solve_bounds = fixed, bounds
             if bounds is not None:     # damped joints bounded, not fixed (_damping_bounds)
                 equal, lower, upper = _damping_bounds(fixed, fixed_dq, h, self.limits.v_index,
                                                       *bounds)
                 solve_bounds = (lower, upper)
-                if not (np.array_equal(lower, previous_bounds[0])
-                        and np.array_equal(upper, previous_bounds[1])):
-                    solution = None    # new bounds: a fresh solve, no restart
             index = equal.nonzero()[0]
             restart = {} if getattr(solution, "restart", None) is None else \
                 {"previous": solution}  # re-solve only the levels the new fixes touch
@@ -522,12 +516,8 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
     lower, upper = bound_lower, bound_upper
     while True:
         if len(bound_lower):
-            previous_lower, previous_upper = lower, upper
             now_fixed, lower, upper = _damping_bounds(fixed, fixed_dq, h, revolute_v,
                                                       bound_lower, bound_upper)
-            if not (np.array_equal(lower, previous_lower)
-                    and np.array_equal(upper, previous_upper)):
-                solved_fixed, solved_values = no_fixed, no_values   # new bounds: fresh
         else:
             now_fixed = fixed.copy()
         values = np.where(now_fixed, fixed_dq, 0.0)

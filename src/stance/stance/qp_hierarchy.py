@@ -238,13 +238,9 @@ class QPHierarchy:
                                          lower, upper, inequalities)
             return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free,
                                  lower, upper)
-        state = getattr(previous, "restart", None)
-        # a restart that fixes more joints keeps the previous solution's levels above the
-        # restart level, starts included (without the new joints' values): usable when
-        # none of them crosses a bound, then the first crossing level is a re-solved one
-        usable = state is None or np.array_equal(state.fixed, fixed) or \
-            self._first_level_out(state.level_starts, state.fixed, lower, upper,
-                                  inequalities) == level_count
+        # a restart keeps the previous solution's levels above its restart level (their
+        # starts without the newly fixed joints' values, which their rows ignore): the
+        # first level out is sought among them too, since the bounds may be new
         solution = self.unconstrained.solve_stacked(jacobian, target, offsets, fixed_index,
                                                     fixed_dq, previous=previous)
         first = self._first_level_out(solution.restart.level_starts, fixed, lower, upper,
@@ -253,10 +249,9 @@ class QPHierarchy:
             return solution
         if inequalities is not None:
             return self._row_cascade(jacobian, target, offsets, fixed_index, fixed_dq, lower,
-                                     upper, inequalities, solution if usable else None,
-                                     first if usable else 0)
+                                     upper, inequalities, solution, first)
         return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
-                             upper, solution if usable else None, first if usable else 0)
+                             upper, solution, first)
 
     @staticmethod
     def _first_level_out(level_starts, fixed, lower, upper, inequalities):
