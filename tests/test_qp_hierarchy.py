@@ -238,6 +238,38 @@ def test_the_unconstrained_solve_stops_at_the_first_level_out_of_bounds(problem)
 
 @PROPERTY
 @given(bounded_problems())
+def test_a_restart_under_new_bounds_finds_the_first_level_out_among_the_kept_levels(problem):
+    """The compiled clamping loop restarts its solve when a limit pass fixes one more joint
+    and brings new (damping) bounds: solve_compiled, restarted from a solution with one
+    fixed joint fewer (none fewer: a pass that only damps) solved without bounds, stops at
+    first_level_out_of_bounds of the full restarted solve, the levels the restart keeps
+    included (their dq was never checked against these bounds)."""
+    levels, nv, fixed_index, fixed_dq, (lower, upper) = problem
+    jacobian, target, offsets = stack_levels(levels, nv)
+    fixed, values = ~free_mask(nv, fixed_index), np.zeros(nv)
+    values[fixed_index] = fixed_dq
+    if excludes_zero(fixed, lower, upper):
+        return                      # the clamping loop cascades at once: no such solve
+    old_fixed, old_values = fixed.copy(), values.copy()
+    if len(fixed_index):
+        old_fixed[fixed_index[-1]], old_values[fixed_index[-1]] = False, 0.0
+    previous = (np.zeros((len(levels), nv, nv)), np.zeros(len(levels), dtype=np.int64),
+                np.zeros((len(levels) + 1, nv)), np.zeros((len(levels), nv)),
+                np.zeros(len(levels)))
+    solve_compiled(jacobian, target, offsets, old_fixed, old_values, np.zeros(0, dtype=bool),
+                   np.zeros(0), *previous, DAMPING, 1e-9, np.zeros(0), np.zeros(0))
+    stops = []
+    for bounds in ((np.zeros(0), np.zeros(0)), (lower, upper)):
+        state = tuple(array.copy() for array in previous)
+        stops.append((solve_compiled(jacobian, target, offsets, fixed, values, old_fixed,
+                                     old_values, *state, DAMPING, 1e-9, *bounds)[1], state))
+    (full_stop, full), (stop, _) = stops
+    assert full_stop == len(levels)
+    assert stop == first_level_out_of_bounds(full[2], fixed, lower, upper)
+
+
+@PROPERTY
+@given(bounded_problems())
 def test_bounds_and_fixed_joints_are_respected(problem):
     levels, nv, fixed_index, fixed_dq, (lower, upper) = problem
     solution = QPHierarchy(damping=DAMPING).solve(levels, nv, fixed_index, fixed_dq,
