@@ -399,13 +399,36 @@ def test_talos_velocity_bounds_bind_and_are_named(talos):
         assert result.levels[0].step_residual_norm < 1e-6
         for constraint in result.binding_constraints:
             dof, kind = constraint.rsplit(" ", 1)
-            assert dof in names and kind in ("lower", "upper", "velocity")
+            assert dof in names and kind in ("lower", "upper", "velocity", "damped")
         seen.update(result.binding_constraints)
         limits = result.q[talos.limited_q_index]
         assert np.all(limits >= np.minimum(talos.lower, q[talos.limited_q_index]) - 1e-12)
         assert np.all(limits <= np.maximum(talos.upper, q[talos.limited_q_index]) + 1e-12)
         q = result.q
     assert any(constraint.endswith(" velocity") for constraint in seen)
+
+
+def test_talos_damping_bounds_are_named_damped(talos):
+    """On the QP hierarchy a damped joint is bounded by its damped variation: where dq is
+    on that bound the status names it '<joint> damped' (it was named as a joint limit),
+    for joints in their damping zone (0 < h < 1) only; the grippers start in theirs."""
+    dt = 0.002
+    q = bench_start(talos)
+    hierarchy = QPHierarchy.for_robot(talos, dt=dt, damping=DAMPING)
+    solver = talos_solver(talos, q, hierarchy, [0.25, -0.2, 0.2], dt=dt)
+    limited = list(solver.limited_dof_names)
+    damped = []
+    for _ in range(10):
+        result = solver.step(q)
+        for constraint in result.binding_constraints:
+            dof, kind = constraint.rsplit(" ", 1)
+            if kind == "damped":
+                assert 0.0 < result.damping[limited.index(dof)] < 1.0
+                damped.append(dof)
+            else:
+                assert kind == "velocity"   # no joint limit within reach of this step
+        q = result.q
+    assert "gripper_left_joint" in damped
 
 
 def test_talos_repeated_steps_are_reproducible(talos):

@@ -31,7 +31,8 @@ from .hierarchy import (DampedHierarchy, HierarchySolution, _damped_least_square
                         excludes_zero, level_start_state, restartable_solution,
                         solve_compiled, solve_levels)
 from .limits import RevoluteLimits, fix_joints, make_strategy
-from .qp_hierarchy import Inequalities, QPHierarchy, cascade_compiled, empty_cascade_state
+from .qp_hierarchy import (BINDING_TOLERANCE, Inequalities, QPHierarchy, cascade_compiled,
+                           empty_cascade_state)
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
 from .swing import NO_BALL, NO_GROUP, BallLimit, JointGroupLimit, ball_fix, group_fix
@@ -75,7 +76,8 @@ class StepResult:
     solve_time: float           # s
     velocity_scale: float = 1.0  # velocity limits: factor on the first level that had to
     #                              slow down, the levels below it dropped (uniform: on dq)
-    binding_constraints: list = field(default_factory=list)  # bounds on dq that bind
+    binding_constraints: list = field(default_factory=list)  # bounds on dq that bind:
+    #                   '<dof> lower|upper|velocity|damped', support rows '<task> edge <k>'
 
 
 @dataclass
@@ -253,12 +255,23 @@ class PIKSolver:
             for model in self.limit_models:
                 model.keep_inside(q, q_next)
         levels, task_errors = self._reports(q, error, step_residuals, jacobian, target)
+        binding = solution.binding
+        if binding and bounds is not None:
+            binding = self.hierarchy.with_damping_bounds(
+                binding, self._on_damping_bounds(solution.dq, fixed, fixed_dq, h))
         fixed[self._locked_v] = False       # reported: fixed by the limits
         return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors,
                           damping=h[self._dof_v_index], clamped=fixed[self._dof_v_index],
                           clamping_iterations=iterations,
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
-                          binding_constraints=solution.binding)
+                          binding_constraints=binding)
+
+    def _on_damping_bounds(self, dq, fixed, fixed_dq, h) -> np.ndarray:
+        """v indices of the damped 1-DoF joints (bounded by their damped variation on the
+        QP hierarchy, _damping_bounds) whose dq (rad) is on that variation."""
+        v = self.limits.v_index
+        damped = fixed[v] & (h[v] > 0.0) & (h[v] < 1.0) & (fixed_dq[v] != 0.0)
+        return v[damped & (np.abs(dq[v] - fixed_dq[v]) <= BINDING_TOLERANCE)]
 
     def _clamping(self, q, jacobian, target, offsets, bounds, fixed, fixed_dq, h,
                   solution=None, inequalities=None):

@@ -443,6 +443,17 @@ class QPHierarchy:
         qp.settings.max_iter = WARM_MAX_ITERATIONS
         return qp
 
+    def with_damping_bounds(self, names: list, dofs) -> list:
+        """names (a solution's binding) with '<dof> lower|upper' of these DoFs renamed
+        '<dof> damped': their bound was a damped variation of progressive clamping
+        (pik._damping_bounds), not a joint or velocity limit."""
+        labels = self._bound_labels
+        if not len(labels):
+            return names            # no DoF bound named yet: none to rename
+        renamed = {labels[3 * dof + side]: labels[3 * dof].rsplit(" ", 1)[0] + " damped"
+                   for dof in dofs for side in (0, 1)}
+        return [renamed.get(name, name) for name in names]
+
     def _binding_names(self, dq, enforced, lower, upper) -> list:
         """'<dof> lower|upper|velocity' for each bound a level's QP enforced that dq is on."""
         nv = len(dq)
