@@ -6,6 +6,7 @@ import numpy as np
 import pinocchio as pin
 from helpers.problems import random_offset
 from stance.pik import PIKSolver
+from stance.qp_hierarchy import QPHierarchy
 from stance.stack import TaskSpec
 from stance.swing import rotation_from_swing_twist, swing_twist
 
@@ -52,37 +53,40 @@ def mannequin_start(robot, limit_models, rng) -> np.ndarray:
 
 
 def mannequin_run(robot, limit_models, start, seed, reachable, strategy="progressive",
-                  steps=40, compiled_loop=True):
+                  steps=40, compiled_loop=True, hierarchy="svd"):
     """(q, StepResult) after each step: left sole > CoM > right hand and right toes toward
     random targets > posture. compiled_loop: False runs the general (Python) clamping
-    loop (PIKSolver's)."""
+    loop (PIKSolver's). hierarchy: svd or qp (QPHierarchy with the robot's joint bounds)."""
     stack = [TaskSpec("left_sole", "pose", frame="left_sole", priority=0, gain=0.5),
              TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
              TaskSpec("right_hand", "position", frame="right_hand", priority=2, gain=0.5),
              TaskSpec("right_toe", "position", frame="right_toe", priority=2, gain=0.5),
              TaskSpec("posture", "posture", priority=3, gain=0.02)]
     return _run(robot, limit_models, stack, start, ("right_hand", "right_toe"), seed,
-                reachable, strategy, steps, compiled_loop)
+                reachable, strategy, steps, compiled_loop, hierarchy)
 
 
-def talos_group_run(robot, groups, seed, reachable, strategy="progressive", steps=40):
-    """(q, StepResult) after each step from half_sitting: right foot > CoM > left foot and
-    both hands toward random targets > posture."""
+def talos_group_run(robot, groups, seed, reachable, strategy="progressive", steps=40,
+                    start=None, hierarchy="svd"):
+    """(q, StepResult) after each step from `start` (default half_sitting): right foot >
+    CoM > left foot and both hands toward random targets > posture."""
     moving = ("left_sole_link", "gripper_left_base_link", "gripper_right_base_link")
     stack = [TaskSpec("right_foot", "pose", frame="right_sole_link", priority=0, gain=0.5),
              TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
              *[TaskSpec(frame, "position", frame=frame, priority=2, gain=0.5)
                for frame in moving],
              TaskSpec("posture", "posture", priority=3, gain=0.02)]
-    return _run(robot, groups, stack, robot.initial_configuration(), moving, seed,
-                reachable, strategy, steps)
+    start = robot.initial_configuration() if start is None else start
+    return _run(robot, groups, stack, start, moving, seed, reachable, strategy, steps,
+                hierarchy=hierarchy)
 
 
 def _run(robot, limit_models, stack, start, moving, seed, reachable, strategy, steps,
-         compiled_loop=True):
+         compiled_loop=True, hierarchy="svd"):
     rng = np.random.default_rng(seed)
     solver = PIKSolver(robot, strategy=strategy, limit_models=limit_models,
-                       compiled_loop=compiled_loop)
+                       compiled_loop=compiled_loop,
+                       hierarchy=QPHierarchy.for_robot(robot) if hierarchy == "qp" else None)
     assert solver._one_call_loop == compiled_loop, "the limit models run in the compiled loop"
     solver.set_stack(stack, start)
     for name in moving:
