@@ -46,7 +46,9 @@ def test_shipped_file_groups_talos_hips_and_shoulders(talos, groups):
         assert model.domain.signed_distance(s) > 0.0, model.name  # half_sitting is inside
     solver = PIKSolver(talos, limit_models=groups)
     names = solver.limited_dof_names
-    assert len(names) == len(set(names)) and set(names) == set(talos.limited_joint_names)
+    rules = [f"{model.name}_{part}" for model in groups for part in ("swing", "twist")]
+    assert len(names) == len(set(names)) and names[-len(rules):] == rules
+    assert set(names[:-len(rules)]) == set(talos.limited_joint_names)
 
 
 @settings(max_examples=20, deadline=None, derandomize=True, database=None)
@@ -248,6 +250,29 @@ def test_the_cones_bind_and_without_a_strategy_are_left(talos, groups):
 
     assert -SWING_TOLERANCE <= closest("progressive", 40) < groups[0].thickness
     assert closest("none", 80) < -5 * SWING_TOLERANCE
+
+
+def test_each_group_reports_its_swing_and_twist_h(talos, groups):
+    """Beside its joints' h (the larger of the group's and their own), each group reports
+    its rule's swing and twist h, clamped where the rule altered its joints: in [0, 1],
+    never above its joints' largest h, and above 0 where unreachable targets drive a cone
+    into its damping zone (as in the test above)."""
+    names = PIKSolver(talos, limit_models=groups).limited_dof_names
+    damped = 0
+    for seed in range(3):
+        for _, result in talos_group_run(talos, groups, seed, False, "progressive", 40):
+            assert len(result.damping) == len(result.clamped) == len(names)
+            for model in groups:
+                rule = [names.index(f"{model.name}_{part}") for part in ("swing", "twist")]
+                joints = [names.index(joint) for joint in model.dof_names]
+                h = result.damping[rule]
+                assert np.all((h >= 0.0) & (h <= 1.0))
+                assert result.clamped[rule[0]] == result.clamped[rule[1]]
+                if h.max() > 0.0:
+                    assert result.clamped[rule[0]]
+                    assert result.damping[joints].max() >= h.max()
+                damped += h[0] > 0.0
+    assert damped
 
 
 def test_gpm_still_attracts_grouped_joints_to_mid_range(talos, groups):

@@ -69,9 +69,11 @@ class StepResult:
     dq: np.ndarray              # applied variation (nv)
     levels: list                # LevelReport per level with enabled tasks, highest first
     task_errors: dict           # task name -> |e| over its selected axes at q (m, rad)
-    damping: np.ndarray         # h per limited DoF (0 free, 1 clamped on a limit)
+    damping: np.ndarray         # h per limited DoF (0 free, 1 clamped on a limit), then
+    #                             per joint group its swing's and its twist's
     clamped: np.ndarray         # bool per limited DoF: variation fixed in the loop (QP: a
-    #                             damped 1-DoF joint bounded by it, _damping_bounds)
+    #                             damped 1-DoF joint bounded by it, _damping_bounds); per
+    #                             group swing and twist: whether the rule altered its joints
     clamping_iterations: int    # hierarchy solutions evaluated
     solve_time: float           # s
     velocity_scale: float = 1.0  # velocity limits: factor on the first level that had to
@@ -138,8 +140,12 @@ class PIKSolver:
         self.limits = RevoluteLimits.from_robot(
             robot, activation, {int(v) for model in limit_models for v in model.v_index})
         self.limit_models = [self.limits, *limit_models]
+        self._group_models = [model for model in limit_models
+                              if isinstance(model, JointGroupLimit)]
+        # h and clamped per limited DoF (v index), then each joint group's swing and twist
         self.limited_dof_names = [name for model in self.limit_models
-                                  for name in model.dof_names]
+                                  for name in model.dof_names] + \
+            [name for group in self._group_models for name in group.report_names]
         self._dof_v_index = np.concatenate([model.v_index for model in self.limit_models])
         self.dt = dt
         speed_step = robot.velocity_limit * dt if dt is not None else np.zeros(0)
@@ -238,6 +244,8 @@ class PIKSolver:
         fixed[self._locked_v] = True        # at 0, like a clamped joint, from the start
         fixed_dq = np.zeros(nv)
         h = np.zeros(nv)
+        for group in self._group_models:
+            group.report[:] = 0.0
         solution, iterations, finished = None, 0, False
         if self._one_call_loop and self.strategy.enforces_limits and inequalities is None:
             solution, iterations, finished = self._compiled_clamping(
@@ -260,9 +268,13 @@ class PIKSolver:
             binding = self.hierarchy.with_damping_bounds(
                 binding, self._on_damping_bounds(solution.dq, fixed, fixed_dq, h))
         fixed[self._locked_v] = False       # reported: fixed by the limits
+        damping, clamped = h[self._dof_v_index], fixed[self._dof_v_index]
+        if self._group_models:              # then each group's swing and twist
+            reports = np.array([group.report for group in self._group_models])
+            damping = np.concatenate([damping, reports[:, :2].ravel()])
+            clamped = np.concatenate([clamped, np.repeat(reports[:, 2] > 0.0, 2)])
         return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors,
-                          damping=h[self._dof_v_index], clamped=fixed[self._dof_v_index],
-                          clamping_iterations=iterations,
+                          damping=damping, clamped=clamped, clamping_iterations=iterations,
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
                           binding_constraints=binding)
 

@@ -763,10 +763,11 @@ def rotation_log(rotation):
 @numba.njit(cache=True)
 def group_fix(group, q, dq, progressive, fixed, fixed_dq, h):
     """JointGroupLimit.fix in one compiled call. group: JointGroupLimit.kernel_arguments,
-    (kinematics, rule, bounds): the (placements, axis indices, q indices, v indices) of
-    its joints, its swing / twist rule, and the joints' own RevoluteLimits (indices,
-    table) over the group's coordinates."""
-    kinematics, rule, bounds = group
+    (kinematics, rule, bounds, report): the (placements, axis indices, q indices, v
+    indices) of its joints, its swing / twist rule, the joints' own RevoluteLimits
+    (indices, table) over the group's coordinates, and the group's report (swing h,
+    twist h, 1.0 once altered: raised in place, JointGroupLimit.report)."""
+    kinematics, rule, bounds, report = group
     placements, axis_index, q_index, v_index = kinematics
     geometry, thickness, twist_table = rule
     count = len(q_index)
@@ -791,7 +792,10 @@ def group_fix(group, q, dq, progressive, fixed, fixed_dq, h):
         changed, target, swing_h, twist_h = _altered(
             rule, s, theta, distance,
             _group_rotation(placements, axis_index, angles + variation)[0], progressive)
-        if changed:   # the joints still free turned to the altered rotation, and fixed
+        if changed and np.any(movable):   # the joints still free turned to the altered
+            #                                   rotation, and fixed
+            report[0], report[1] = max(report[0], swing_h), max(report[1], twist_h)
+            report[2] = 1.0
             reached = _group_angles(placements, axis_index, target, angles,
                                     np.flatnonzero(movable))
             for j in range(count):
@@ -815,7 +819,7 @@ def group_fix(group, q, dq, progressive, fixed, fixed_dq, h):
 @numba.njit(cache=True)
 def _group_keep_inside(group, q, q_next):
     """JointGroupLimit.keep_inside in one compiled call (group: group_fix's)."""
-    kinematics, rule, bounds = group
+    kinematics, rule, bounds, _ = group
     placements, axis_index, q_index, _ = kinematics
     twist_table = rule[2]
     local, lower, upper = bounds[0][0], bounds[1][0], bounds[1][1]
@@ -880,12 +884,17 @@ class JointGroupLimit(SwingTwistRule):
         self.q_index = np.array([model.joints[i].idx_q for i in ids], dtype=np.int64)
         self.v_index = np.array([model.joints[i].idx_v for i in ids], dtype=np.int64)
         self.dof_names = list(joints)
+        # the swing / twist rule's own h, reported beside the joints' (whose h is the
+        # larger of the group's and their own): swing h, twist h, 1.0 once it altered the
+        # joints, the largest since the last reset (PIKSolver resets it every step)
+        self.report = np.zeros(3)
+        self.report_names = [f"{name}_swing", f"{name}_twist"]
         bounds = (model.lowerPositionLimit[self.q_index], model.upperPositionLimit[self.q_index])
         local = np.arange(len(ids))
         self.bounds = RevoluteLimits(joints, local, local, *bounds, activation)
         self.kernel_arguments = ((self.placements, self.axis_index, self.q_index,
                                   self.v_index), self.rule,
-                                 (self.bounds.indices, self.bounds.table))
+                                 (self.bounds.indices, self.bounds.table), self.report)
 
     def warm_up(self, q) -> None:
         super().warm_up(q)
@@ -927,7 +936,7 @@ class JointGroupLimit(SwingTwistRule):
 # clamping loop's stand-in for a robot without groups (numba cannot loop over no groups)
 NO_GROUP = ((np.zeros((0, 3, 3)), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
              np.zeros(0, dtype=np.int64)), (EllipticCone(1.0, 1.0).geometry, 1.0, FREE_TWIST),
-            (np.zeros((2, 0), dtype=np.int64), np.zeros((5, 0))))
+            (np.zeros((2, 0), dtype=np.int64), np.zeros((5, 0))), np.zeros(3))
 # ball_fix's arguments for no joint: the compiled loop's stand-in for a robot without balls
 NO_BALL = (np.array([-1, -1], dtype=np.int64), NO_GROUP[1])
 
