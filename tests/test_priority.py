@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from helpers.problems import hierarchy_problems, residual
 from stance.hierarchy import DampedHierarchy, Level, stack_levels
-from stance.pik import PIKSolver, _largest_fraction, default_stack_specs
+from stance.pik import LM_DAMPING, PIKSolver, _largest_fraction, default_stack_specs
 from stance.robot import Robot
 from stance.stack import TaskSpec
 
@@ -194,10 +194,15 @@ def step_residuals(solver, q) -> dict:
     return {level.priority: level.step_residual_norm for level in solver.step(q).levels}
 
 
+@pytest.mark.parametrize("lm_damping", [0.0, LM_DAMPING])
 @pytest.mark.parametrize("conflict", CONFLICTING_LEVELS, ids=str)
-def test_conflicting_lower_level_leaves_higher_levels_unchanged_on_talos(talos, conflict):
+def test_conflicting_lower_level_leaves_higher_levels_unchanged_on_talos(talos, conflict,
+                                                                         lm_damping):
+    """With Levenberg-Marquardt damping each level's lambda comes from its own targets, so
+    the conflicting level below changes no higher level's step either (the hand level,
+    0.17 m off its target, is then damped and not met in one step)."""
     q = talos.initial_configuration()
-    solver = PIKSolver(talos, strategy="none", damping=DAMPING)
+    solver = PIKSolver(talos, strategy="none", damping=DAMPING, lm_damping=lm_damping)
     solver.set_stack(feasible_specs(), q)
     shift_pose(solver.task("right_hand"), [0.1, -0.1, 0.1])
     alone = step_residuals(solver, q)
@@ -209,7 +214,7 @@ def test_conflicting_lower_level_leaves_higher_levels_unchanged_on_talos(talos, 
 
     assert together[spec.priority] > 1e-3, "the lower level should not be achievable"
     for priority, value in alone.items():
-        assert value < 1e-4, f"level {priority} should be feasible"
+        assert value < 1e-4 or lm_damping, f"level {priority} should be feasible"
         assert abs(together[priority] - value) < PRIORITY_TOLERANCE
 
 

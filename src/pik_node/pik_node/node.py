@@ -52,7 +52,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
 from stance.limits import STRATEGIES
-from stance.pik import HIERARCHIES, demo_stack_file
+from stance.pik import HIERARCHIES, LM_DAMPING, demo_stack_file
 from stance.stack import parse_stack_yaml
 from stance.swing import LimitFileError, limit_file_path, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
@@ -92,7 +92,7 @@ class PikNode(Node):
             raise LimitFileError(f"limits_file: {_file_error(error)}") from None
         self.solver = PIKSolver(
             self.robot, strategy=get("strategy").value, damping=get("damping").value,
-            activation=get("activation").value,
+            lm_damping=get("lm_damping").value, activation=get("activation").value,
             dt=1.0 / rate if get("velocity_limits").value else None,
             hierarchy=get("hierarchy").value, limit_models=limit_models,
             locked_joints=self.get_parameter_or(
@@ -172,8 +172,12 @@ class PikNode(Node):
         self.declare_parameter("hierarchy", "svd", describe(
             f"prioritized solver: {', '.join(HIERARCHIES)} (qp: bounds as inequalities)"))
         self.declare_parameter("damping", 1e-3, describe(
-            "damped least squares lambda",
+            "damped least squares lambda once the targets are reached",
             floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0)]))
+        self.declare_parameter("lm_damping", LM_DAMPING, describe(
+            "Levenberg-Marquardt scale: lambda^2 = damping^2 + lm_damping |step targets|^2 "
+            "(all tasks but posture), so targets out of reach do not make joints chatter",
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e4)]))
         self.declare_parameter("activation", 0.2, describe(
             "progressive clamping zone thickness next to each limit (rad)",
             floating_point_range=[FloatingPointRange(from_value=1e-3, to_value=1.0)]))
@@ -395,6 +399,7 @@ class PikNode(Node):
             level_msg.residual_norm = level.residual_norm
             level_msg.step_residual_norm = level.step_residual_norm
             level_msg.condition = level.condition
+            level_msg.damping = level.damping
         for task_msg in status.tasks:
             task_msg.error_norm = result.task_errors[task_msg.name]
             target, current = self.solver.task_poses(task_msg.name)

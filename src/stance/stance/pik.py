@@ -3,7 +3,15 @@
 One IK step from configuration q:
   1. kinematics of q (Pinocchio: joint Jacobians, frame placements, CoM Jacobian);
   2. the enabled tasks, grouped by priority, give one Level each (rows scaled by
-     sqrt(weight), targets = the tasks' capped steps);
+     sqrt(weight), targets = the tasks' capped steps); each level's damped least squares
+     lambda is lambda_k^2 = damping^2 + lm_damping |e_k|^2, e_k the level's target rows of
+     the tasks that curve (all but posture): Levenberg-Marquardt damping as Pink's
+     lm_damping (Sugihara, "Solvability-unconcerned inverse kinematics by the
+     Levenberg-Marquardt method", 2011), large while a target is far or out of reach, so
+     an unreachable target does not make the joints chatter, and `damping` alone once
+     the targets are reached. The level's rows and targets are scaled by damping /
+     lambda_k, so the hierarchy's one lambda acts as lambda_k on that level alone, and no
+     level's damping depends on the levels below it;
   3. clamping loop: solve the hierarchy; ask every limit model, through the strategy, which
      of its free DoFs must be damped or clamped; fix them as highest-priority equalities;
      repeat until none is new (the strategy may add lowest-priority levels, e.g. GPM);
@@ -19,6 +27,7 @@ One IK step from configuration q:
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,11 +45,13 @@ from .qp_hierarchy import (BINDING_TOLERANCE, Inequalities, QPHierarchy, cascade
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
 from .swing import NO_BALL, NO_GROUP, BallLimit, JointGroupLimit, ball_fix, group_fix
-from .tasks import (ComTask, FrameTask, FrameTaskBatch, SupportTask, capped_steps,
-                    make_task, step_cap_groups)
+from .tasks import (ComTask, FrameTask, FrameTaskBatch, PostureTask, SupportTask,
+                    capped_steps, make_task, step_cap_groups)
 
 
 MET_RELATIVE = 1e-3   # a level whose step residual is below this x its step is met
+LM_DAMPING = 100.0    # lm_damping: Talos' hands out of reach hold still, reached ones
+#                       converge as fast as without it (tests/test_lm_damping.py)
 
 
 @dataclass
@@ -49,15 +60,18 @@ class LevelReport:
     tasks: list
     residual_norm: float        # |sqrt(w) e| stacked over the level's tasks, at q
     step_residual_norm: float   # |J dq - step| the hierarchy left, task units
+    damping: float              # its damped least squares lambda this step (LM damping)
     decide_condition: object = field(default="met", repr=False)  # its condition, or the
     #                             arguments of _level_condition, run at the first read
 
     @property
     def condition(self) -> str:
         """met: step residual <= MET_RELATIVE x |step|; singular: the level's own rows,
-        damped as in the hierarchy, cannot give its step either (rank-deficient or
-        contradictory rows, a stretched limb); conflict: they could, but higher levels,
-        clamped joints or bounds take what it needs."""
+        damped by `damping`, cannot give its step either (rank-deficient or contradictory
+        rows, a stretched limb); conflict: they could, but higher levels, clamped joints or
+        bounds take what it needs; damped: its Levenberg-Marquardt damping holds part of
+        the step back (a target far or out of reach), the levels above would leave it
+        (clamped joints and bounds not counted)."""
         if not isinstance(self.decide_condition, str):
             self.decide_condition = _level_condition(*self.decide_condition)
         return self.decide_condition
@@ -100,6 +114,8 @@ class _Layout:
     row_group: np.ndarray       # step cap group per row (Task.step_caps)
     group_cap: np.ndarray       # norm cap per group (task units per step)
     error_norms: np.ndarray     # filled per step: |e| per task, then |sqrt(w) e| per level
+    curved_rows: np.ndarray     # rows of the tasks that curve (not posture): LM damping
+    level_scale: np.ndarray     # filled per step: damping / lambda per level (LM damping)
     support_tasks: list         # (enabled SupportTask, its level index): inequality rows
 
 
@@ -107,7 +123,9 @@ class PIKSolver:
     """Prioritized IK for one robot.
 
     strategy: joint limit strategy name (none, gpm, clamping, progressive).
-    damping: damped least squares lambda. activation: damping zone thickness (rad).
+    damping: damped least squares lambda once the targets are reached.
+    lm_damping: Levenberg-Marquardt scale (module docstring, step 2; 0: lambda is always
+        `damping`, as in the paper's experiments). activation: damping zone thickness (rad).
     dt: if set, joint variations respect the URDF velocity limits over dt seconds.
     hierarchy: the prioritized solver: "svd" (DampedHierarchy, damped least squares),
         "qp" (QPHierarchy on ProxSuite, with joint and velocity bounds as inequalities), or
@@ -131,8 +149,15 @@ class PIKSolver:
 
     def __init__(self, robot, strategy: str = "progressive", damping: float = 1e-3,
                  activation: float = 0.2, dt: float | None = None, hierarchy="svd",
-                 limit_models=(), locked_joints=(), compiled_loop: bool = True):
+                 limit_models=(), locked_joints=(), compiled_loop: bool = True,
+                 lm_damping: float = LM_DAMPING):
+        if not (math.isfinite(lm_damping) and lm_damping >= 0.0):
+            raise ValueError(f"lm_damping must be finite and >= 0, got {lm_damping}")
+        if lm_damping > 0.0 and not damping > 0.0:
+            raise ValueError("lm_damping needs damping > 0 (the rows of a level are scaled "
+                             "by damping / its lambda)")
         self.robot = robot
+        self.damping, self.lm_damping = damping, float(lm_damping)
         self.locked_joints = list(locked_joints)
         self._locked_v = _locked_dofs(robot, self.locked_joints)
         self.strategy = make_strategy(strategy)
@@ -233,6 +258,7 @@ class PIKSolver:
         self.compute_kinematics(q)
         jacobian, target, error = self._fill_levels(q)
         offsets = self._layout.offsets
+        level_scale = self._lm_scale(jacobian, target)
 
         extra = self.strategy.extra_levels(self, q)
         if extra:
@@ -262,7 +288,8 @@ class PIKSolver:
         if self.strategy.enforces_limits:
             for model in self.limit_models:
                 model.keep_inside(q, q_next)
-        levels, task_errors = self._reports(q, error, step_residuals, jacobian, target)
+        levels, task_errors = self._reports(q, error, step_residuals, jacobian, target,
+                                            level_scale)
         binding = solution.binding
         if binding and bounds is not None:
             binding = self.hierarchy.with_damping_bounds(
@@ -277,6 +304,16 @@ class PIKSolver:
                           damping=damping, clamped=clamped, clamping_iterations=iterations,
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
                           binding_constraints=binding)
+
+    def _lm_scale(self, jacobian, target) -> np.ndarray:
+        """Each level's factor damping / lambda_k (module docstring, step 2; 1 without LM
+        damping), its rows of the stacked Jacobian and target scaled by it in place."""
+        layout = self._layout
+        scale = layout.level_scale
+        if self.lm_damping:
+            _lm_scale_levels(jacobian, target, layout.offsets, layout.curved_rows,
+                             self.damping, self.lm_damping, scale)
+        return scale
 
     def _on_damping_bounds(self, dq, fixed, fixed_dq, h) -> np.ndarray:
         """v indices of the damped 1-DoF joints (bounded by their damped variation on the
@@ -393,7 +430,7 @@ class PIKSolver:
         error = self._error = np.zeros(row_count)
         self._target = np.zeros(row_count)
         others, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
-        gains, support = [], []
+        gains, support, curved = [], [], []
         row = 0
         for task in enabled:
             if not priorities or priorities[-1] != task.priority:
@@ -411,6 +448,7 @@ class PIKSolver:
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
+            curved.extend([not isinstance(task, PostureTask)] * task.dimension)
             row += task.dimension
         if priorities:
             offsets.append(row)
@@ -422,7 +460,7 @@ class PIKSolver:
                        others, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
                        *step_cap_groups(enabled), np.zeros(len(enabled) + len(priorities)),
-                       support)
+                       np.array(curved, dtype=bool), np.ones(len(priorities)), support)
 
     def _fill_levels(self, q):
         """Write every enabled task's rows into the stacked Jacobian, error and target
@@ -436,17 +474,20 @@ class PIKSolver:
                        layout.row_scale, target)
         return jacobian, target, error
 
-    def _reports(self, q, error, step_residuals, jacobian, target):
+    def _reports(self, q, error, step_residuals, jacobian, target, level_scale):
+        """LevelReports and task errors; step_residuals (of the rows as solved, each level
+        scaled by level_scale) reported in task units."""
         layout = self._layout
         norms = layout.error_norms
         _error_norms(error, layout.task_starts, layout.offsets, layout.row_scale, norms)
         norms = norms.tolist()  # Python floats without one call per value
         task_count = len(layout.task_names)
         task_errors = dict(zip(layout.task_names, norms[:task_count]))
-        step_residuals = np.asarray(step_residuals, dtype=float).tolist()
+        solved = np.asarray(step_residuals, dtype=float)[:len(level_scale)]
         levels = list(map(LevelReport, layout.priorities, layout.level_tasks,
-                          norms[task_count:], step_residuals,
-                          self._conditions(jacobian, target, step_residuals)))
+                          norms[task_count:], (solved / level_scale).tolist(),
+                          (self.damping / level_scale).tolist(),
+                          self._conditions(jacobian, target, solved.tolist())))
         for task in layout.disabled_tasks:
             _, task_error = task.jacobian_and_error(self.robot, q)
             task_errors[task.name] = task.distance_outside(self.robot) \
@@ -462,7 +503,8 @@ class PIKSolver:
         step whose report nobody reads pays the copy only)."""
         offsets = self._layout.offsets
         problem = (jacobian[:offsets[-1]].copy(), target[:offsets[-1]].copy(), offsets,
-                   getattr(self._unconstrained, "damping", 0.0) ** 2)
+                   getattr(self._unconstrained, "damping", 0.0) ** 2,
+                   self._layout.level_scale.copy())
         return [(problem, level, residual)
                 for level, residual in enumerate(step_residuals[:len(offsets) - 1])]
 
@@ -698,6 +740,25 @@ def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
 
 
 @numba.njit(cache=True)
+def _lm_scale_levels(jacobian, target, offsets, curved, damping, lm_damping, scale):
+    """scale[k] = damping / lambda_k, lambda_k^2 = damping^2 + lm_damping |e_k|^2 with e_k
+    level k's target rows where `curved` (PIKSolver module docstring, step 2); level k's
+    rows of jacobian and target multiplied by it (all in place)."""
+    for level in range(len(offsets) - 1):
+        square = 0.0
+        for row in range(offsets[level], offsets[level + 1]):
+            if curved[row]:
+                square += target[row] * target[row]
+        scale[level] = 1.0 if square == 0.0 else \
+            damping / math.sqrt(damping * damping + lm_damping * square)
+        if scale[level] < 1.0:
+            for row in range(offsets[level], offsets[level + 1]):
+                target[row] *= scale[level]
+                for column in range(jacobian.shape[1]):
+                    jacobian[row, column] *= scale[level]
+
+
+@numba.njit(cache=True)
 def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
     """|J dq - target| of each stacked level (task units)."""
     residuals = np.zeros(len(offsets) - 1)
@@ -718,16 +779,30 @@ _NO_CASCADE_STATE = empty_cascade_state(0, 0, np.zeros(1, dtype=np.int64))
 
 
 def _level_condition(problem, level, step_residual) -> str:
-    """LevelReport.condition of a level of problem = (stacked rows, targets, level
-    offsets, damping^2), which the hierarchy left with this step residual."""
-    jacobian, target, offsets, damping_sq = problem
+    """LevelReport.condition of a level of problem = (stacked rows and targets, each level
+    scaled by its LM factor, level offsets, damping^2, the factors), which the hierarchy
+    left with this step residual (of the scaled rows)."""
+    jacobian, target, offsets, damping_sq, scale = problem
     rows = jacobian[offsets[level]:offsets[level + 1]]
     wanted = target[offsets[level]:offsets[level + 1]]
     met = MET_RELATIVE * float(np.linalg.norm(wanted))
     if step_residual <= met:
         return "met"
-    alone = _damped_least_squares(rows, wanted, damping_sq)
-    return "singular" if float(np.linalg.norm(rows @ alone - wanted)) > met else "conflict"
+    factor = scale[level] if level < len(scale) else 1.0
+    alone = _damped_least_squares(rows, wanted, damping_sq * factor * factor)  # lambda: damping
+    if float(np.linalg.norm(rows @ alone - wanted)) > met:
+        return "singular"
+    if factor == 1.0:
+        return "conflict"
+    # LM damping on: would the levels above (as solved) leave it its step at lambda =
+    # damping? Then its own damping is what holds the step back, else they take it too
+    end = offsets[level + 1]
+    prefix_jacobian, prefix_target = jacobian[:end].copy(), target[:end].copy()
+    prefix_jacobian[offsets[level]:end] /= factor
+    prefix_target[offsets[level]:end] /= factor
+    prefix = DampedHierarchy(damping=math.sqrt(damping_sq)).solve_stacked(
+        prefix_jacobian, prefix_target, offsets[:level + 2])
+    return "damped" if prefix.step_residuals[level] <= met / factor else "conflict"
 
 
 def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):

@@ -66,8 +66,8 @@ def build_chain() -> Robot:
 def chain_solver(robot: Robot, strategy: str, q_start, hierarchy: str = "svd") -> PIKSolver:
     """Solver with the three effector tasks (priorities 0, 1, 2) aimed at TARGETS, on the
     SVD or the QP hierarchy (PIKSolver's `hierarchy`)."""
-    solver = PIKSolver(robot, strategy=strategy, damping=DAMPING, activation=ACTIVATION,
-                       hierarchy=hierarchy)
+    solver = PIKSolver(robot, strategy=strategy, damping=DAMPING, lm_damping=0.0,  # paper's
+                       activation=ACTIVATION, hierarchy=hierarchy)  # constant damping
     if strategy == "gpm":
         solver.strategy = GradientProjection(gain=GPM_GAIN)
     specs = [TaskSpec(effector_name(index), "position", effector_name(index), priority=index,

@@ -146,7 +146,8 @@ def thorn_stack(frames: dict) -> list:
 def thorn_solver(humanoid: Humanoid, robot: Robot, strategy: str, q_start,
                  compiled_loop: bool = True) -> PIKSolver:
     """Solver with the thorn stack; targets from the kinematics of q_start."""
-    solver = PIKSolver(robot, strategy=strategy, damping=DAMPING, activation=ACTIVATION,
+    solver = PIKSolver(robot, strategy=strategy, damping=DAMPING, lm_damping=0.0,  # paper's
+                       activation=ACTIVATION,                         # constant damping
                        limit_models=humanoid.limit_models(robot), compiled_loop=compiled_loop)
     solver.set_stack(thorn_stack(humanoid.frames), q_start)  # holds every task at q_start
     data, model = robot.data, robot.model
