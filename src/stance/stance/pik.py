@@ -92,8 +92,16 @@ class StepResult:
     solve_time: float           # s
     velocity_scale: float = 1.0  # velocity limits: factor on the first level that had to
     #                              slow down, the levels below it dropped (uniform: on dq)
-    binding_constraints: list = field(default_factory=list)  # bounds on dq that bind:
-    #                   '<dof> lower|upper|velocity|damped', support rows '<task> edge <k>'
+    decide_binding: object = field(default_factory=list, repr=False)  # binding_constraints,
+    #                             or PIKSolver._binding_names' arguments, run at the first read
+
+    @property
+    def binding_constraints(self) -> list:
+        """Bounds on dq that bind: '<dof> lower|upper|velocity|damped', support rows
+        '<task> edge <k>' (named at the first read: a step nobody reports pays nothing)."""
+        if isinstance(self.decide_binding, tuple):
+            self.decide_binding = PIKSolver._binding_names(*self.decide_binding)
+        return self.decide_binding
 
 
 @dataclass
@@ -292,8 +300,7 @@ class PIKSolver:
                                             level_scale)
         binding = solution.binding
         if binding and bounds is not None:
-            binding = self.hierarchy.with_damping_bounds(
-                binding, self._on_damping_bounds(solution.dq, fixed, fixed_dq, h))
+            binding = (self, binding, solution.dq, fixed, fixed_dq, h)
         fixed[self._locked_v] = False       # reported: fixed by the limits
         damping, clamped = h[self._dof_v_index], fixed[self._dof_v_index]
         if self._group_models:              # then each group's swing and twist
@@ -303,7 +310,7 @@ class PIKSolver:
         return StepResult(q=q_next, dq=dq, levels=levels, task_errors=task_errors,
                           damping=damping, clamped=clamped, clamping_iterations=iterations,
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
-                          binding_constraints=binding)
+                          decide_binding=binding)
 
     def _lm_scale(self, jacobian, target) -> np.ndarray:
         """Each level's factor damping / lambda_k (module docstring, step 2; 1 without LM
@@ -315,12 +322,15 @@ class PIKSolver:
                              self.damping, self.lm_damping, scale)
         return scale
 
-    def _on_damping_bounds(self, dq, fixed, fixed_dq, h) -> np.ndarray:
-        """v indices of the damped 1-DoF joints (bounded by their damped variation on the
-        QP hierarchy, _damping_bounds) whose dq (rad) is on that variation."""
+    def _binding_names(self, names, dq, fixed, fixed_dq, h) -> list:
+        """The QP hierarchy's binding names with '<joint> damped' for the damped 1-DoF
+        joints (bounded by their damped variation, _damping_bounds) whose dq (rad) is on
+        that variation (fixed, fixed_dq, h: the step's, nv each; the locked joints, unfixed
+        for the report, have h = 0)."""
         v = self.limits.v_index
         damped = fixed[v] & (h[v] > 0.0) & (h[v] < 1.0) & (fixed_dq[v] != 0.0)
-        return v[damped & (np.abs(dq[v] - fixed_dq[v]) <= BINDING_TOLERANCE)]
+        on = v[damped & (np.abs(dq[v] - fixed_dq[v]) <= BINDING_TOLERANCE)]
+        return self.hierarchy.with_damping_bounds(names, on)
 
     def _clamping(self, q, jacobian, target, offsets, bounds, fixed, fixed_dq, h,
                   solution=None, inequalities=None):
