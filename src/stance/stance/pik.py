@@ -161,15 +161,19 @@ class PIKSolver:
                  lm_damping: float = LM_DAMPING):
         if not (math.isfinite(lm_damping) and lm_damping >= 0.0):
             raise ValueError(f"lm_damping must be finite and >= 0, got {lm_damping}")
-        if lm_damping > 0.0 and not damping > 0.0:
-            raise ValueError("lm_damping needs damping > 0 (the rows of a level are scaled "
-                             "by damping / its lambda)")
         self.robot = robot
-        self.damping, self.lm_damping = damping, float(lm_damping)
         self.locked_joints = list(locked_joints)
         self._locked_v = _locked_dofs(robot, self.locked_joints)
         self.strategy = make_strategy(strategy)
         self.hierarchy = make_hierarchy(hierarchy, robot, damping, dt)
+        # the lambda the hierarchy solves with (a hierarchy object brings its own): LM
+        # damping scales rows by it, the reports and level conditions use it
+        self.damping = getattr(getattr(self.hierarchy, "unconstrained", self.hierarchy),
+                               "damping", damping)
+        self.lm_damping = float(lm_damping)
+        if self.lm_damping > 0.0 and not self.damping > 0.0:
+            raise ValueError("lm_damping needs damping > 0 (the rows of a level are scaled "
+                             "by damping / its lambda)")
         self.limits = RevoluteLimits.from_robot(
             robot, activation, {int(v) for model in limit_models for v in model.v_index})
         self.limit_models = [self.limits, *limit_models]
@@ -513,8 +517,7 @@ class PIKSolver:
         step whose report nobody reads pays the copy only)."""
         offsets = self._layout.offsets
         problem = (jacobian[:offsets[-1]].copy(), target[:offsets[-1]].copy(), offsets,
-                   getattr(self._unconstrained, "damping", 0.0) ** 2,
-                   self._layout.level_scale.copy())
+                   self.damping ** 2, self._layout.level_scale.copy())
         return [(problem, level, residual)
                 for level, residual in enumerate(step_residuals[:len(offsets) - 1])]
 
@@ -798,7 +801,7 @@ def _level_condition(problem, level, step_residual) -> str:
     met = MET_RELATIVE * float(np.linalg.norm(wanted))
     if step_residual <= met:
         return "met"
-    factor = scale[level] if level < len(scale) else 1.0
+    factor = scale[level]
     alone = _damped_least_squares(rows, wanted, damping_sq * factor * factor)  # lambda: damping
     if float(np.linalg.norm(rows @ alone - wanted)) > met:
         return "singular"
