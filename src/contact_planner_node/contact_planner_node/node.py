@@ -37,12 +37,13 @@ from stance_msgs.action import PlanContacts
 from stance_msgs.msg import StancePlan
 
 from .conversions import GoalRejected, request_from_goal, scene_from_goal, stance_plan_msg
-from .worker import PLANNER_ERROR, PlannerProcess, PlannerProcessError
+from .worker import CANCEL_GRACE, PLANNER_ERROR, PlannerProcess, PlannerProcessError
 
 ACTION_NAME = "/contact_planner/plan_contacts"
 PLAN_TOPIC = "/contact_planner/plan"
 FEEDBACK_RATE = 5.0  # Hz, at most
 MAX_WORKERS = 16     # planner worker processes at most
+STOP_WAIT = 10 * CANCEL_GRACE  # s shutdown waits for a running plan to return
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -98,8 +99,14 @@ class ContactPlannerNode(Node):
             integer_range=[IntegerRange(from_value=1, to_value=MAX_WORKERS, step=1)]))
 
     def stop_planning(self):
-        """Make a running plan stop (shutdown); the executor then ends its thread."""
+        """Make a running plan stop (shutdown) and wait, at most STOP_WAIT s, until its
+        goal has its result: rclpy's Executor.shutdown(timeout_sec) does not wait for
+        running callbacks, so destroy_node would otherwise close the planner process under
+        the plan's thread."""
         self._stopping.set()
+        if not self._busy.acquire(timeout=STOP_WAIT):
+            self.get_logger().warning(f"the running plan did not end within {STOP_WAIT} s "
+                                      "of shutdown; closing its planner process anyway")
 
     def destroy_node(self):
         self.planner.close()
