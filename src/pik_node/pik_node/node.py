@@ -490,7 +490,8 @@ def run_node(label: str, make_node, startup_errors: tuple, args=None, start=None
     """The entry point of every Stance node: build the node (exit 1 with the reason on
     `startup_errors` and on parameter errors: a wrong type, a value out of range), call
     start(node), spin on make_executor() until SIGINT or SIGTERM, call stop(node) (so work
-    in executor callbacks ends), shut down the executor and rclpy; exit 0."""
+    in executor callbacks ends: stop must wait for it, as rclpy's Executor.shutdown does
+    not), shut down the executor and rclpy; exit 0."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = make_node()
