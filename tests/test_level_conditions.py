@@ -1,8 +1,10 @@
 """Each level's condition in a step's report: met, conflict (higher levels, limits or
-bounds take what it needs) or singular (its own rows cannot give its step): a singular or
-contradictory stack returns a solution and says so."""
+bounds take what it needs), singular (its own rows cannot give its step) or damped (its
+Levenberg-Marquardt damping alone holds part of it back): a singular or contradictory stack
+returns a solution and says so."""
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from stance.pik import LM_DAMPING, PIKSolver
@@ -76,3 +78,53 @@ def test_a_contradicting_level_is_a_conflict_contradicting_rows_are_singular(
     assert levels[0].condition == "met"
     assert levels[priority].condition == condition
     assert levels[priority].step_residual_norm > 1e-3
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+def test_a_level_a_clamped_joint_holds_back_is_a_conflict_not_damped(hierarchy):
+    """Panda's hand turned about the base's z axis, beyond the only joint left free
+    (panda_joint1, started 1 mm inside its upper limit): the joint stops on its limit and
+    the hand's level keeps its whole step. LM damping also holds part of the step back,
+    but with lambda = damping the clamped joint would still leave it: conflict."""
+    panda = Robot.from_example_robot_data("panda")
+    q = panda.initial_configuration("default")
+    joint = panda.model.joints[panda.model.getJointId("panda_joint1")]
+    q[joint.idx_q] = panda.model.upperPositionLimit[joint.idx_q] - 1e-3
+    others = [name for name in panda.actuated_joint_names if name != "panda_joint1"]
+    solver = PIKSolver(panda, hierarchy=hierarchy, dt=0.002, locked_joints=others)
+    solver.set_stack(parse_stack_yaml("""
+- {name: hand, kind: position, frame: panda_hand, priority: 0, gain: 0.1}
+"""), q)
+    target = solver.task("hand").target
+    target.translation = pin.utils.rpyToMatrix(0.0, 0.0, 0.2) @ target.translation
+    solver.task("hand").set_target(target)
+    for _ in range(3):
+        result = solver.step(q)
+        q = result.q
+    assert q[joint.idx_q] <= panda.model.upperPositionLimit[joint.idx_q] + 1e-12
+    hand = result.levels[0]
+    assert hand.damping > 10 * solver.damping     # LM damping is on for this level
+    assert hand.step_residual_norm > 0.9 * 0.1 * hand.residual_norm  # nearly all kept
+    assert hand.condition == "conflict"
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+def test_a_level_the_velocity_limits_slow_is_a_conflict_not_damped(talos, hierarchy):
+    """The hand 0.3 m away at gain 1: its step is far beyond the joints' velocity limits
+    over 2 ms, which take part of it whatever its LM damping leaves."""
+    q = bench_start(talos)
+    solver = PIKSolver(talos, hierarchy=hierarchy, dt=0.002)
+    solver.set_stack(parse_stack_yaml(FEET + """
+- {name: hand, kind: position, frame: gripper_right_base_link, priority: 1, gain: 1.0}
+"""), q)
+    target = solver.task("hand").target
+    target.translation += [0.3, 0.0, 0.0]
+    solver.task("hand").set_target(target)
+    result = solver.step(q)
+    levels = {level.priority: level for level in result.levels}
+    if hierarchy == "svd":                   # the hand's level saturated
+        assert result.velocity_scale < 1.0
+    else:                                       # velocity bounds bind
+        assert any(name.endswith(" velocity") for name in result.binding_constraints)
+    assert levels[0].condition == "met"
+    assert levels[1].condition == "conflict"

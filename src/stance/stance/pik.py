@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numba
@@ -49,7 +50,8 @@ from .tasks import (ComTask, FrameTask, FrameTaskBatch, PostureTask, SupportTask
                     capped_steps, make_task, step_cap_groups)
 
 
-MET_RELATIVE = 1e-3   # a level whose step residual is below this x its step is met
+MET_RELATIVE = 1e-3   # a level whose step residual is below this x its step is met,
+MET_ABSOLUTE = 1e-12  # or below this (m, rad): rounding, on a level already on target
 LM_DAMPING = 100.0    # lm_damping: Talos' hands out of reach hold still, reached ones
 #                       converge as fast as without it (tests/test_lm_damping.py)
 
@@ -66,12 +68,13 @@ class LevelReport:
 
     @property
     def condition(self) -> str:
-        """met: step residual <= MET_RELATIVE x |step|; singular: the level's own rows,
-        damped by `damping`, cannot give its step either (rank-deficient or contradictory
-        rows, a stretched limb); conflict: they could, but higher levels, clamped joints or
-        bounds take what it needs; damped: its Levenberg-Marquardt damping holds part of
-        the step back (a target far or out of reach), the levels above would leave it
-        (clamped joints and bounds not counted)."""
+        """met: step residual <= MET_RELATIVE x |step| (or MET_ABSOLUTE); singular: the
+        level's own rows, damped by `damping`, cannot give its step either (rank-deficient
+        or contradictory rows, a stretched limb); conflict: they could, but higher levels,
+        clamped joints or bounds (velocity limits included) take what it needs; damped:
+        its Levenberg-Marquardt damping holds part of the step back (a target far away or
+        out of reach): at lambda = damping the levels above and the clamped joints would
+        leave it its step, within the joint and velocity limits."""
         if not isinstance(self.decide_condition, str):
             self.decide_condition = _level_condition(*self.decide_condition)
         return self.decide_condition
@@ -300,8 +303,11 @@ class PIKSolver:
         if self.strategy.enforces_limits:
             for model in self.limit_models:
                 model.keep_inside(q, q_next)
+        held = (fixed.copy(), fixed_dq.copy(),
+                bounds if bounds is not None else partial(self._dq_bounds, q.copy()),
+                None if scale == 1.0 else np.array(solution.step_residuals, dtype=float))
         levels, task_errors = self._reports(q, error, step_residuals, jacobian, target,
-                                            level_scale)
+                                            level_scale, held)
         binding = solution.binding
         if binding and bounds is not None:
             binding = (self, binding, solution.dq, fixed, fixed_dq, h)
@@ -488,9 +494,9 @@ class PIKSolver:
                        layout.row_scale, target)
         return jacobian, target, error
 
-    def _reports(self, q, error, step_residuals, jacobian, target, level_scale):
+    def _reports(self, q, error, step_residuals, jacobian, target, level_scale, held):
         """LevelReports and task errors; step_residuals (of the rows as solved, each level
-        scaled by level_scale) reported in task units."""
+        scaled by level_scale) reported in task units; held: _level_condition's."""
         layout = self._layout
         norms = layout.error_norms
         _error_norms(error, layout.task_starts, layout.offsets, layout.row_scale, norms)
@@ -501,7 +507,7 @@ class PIKSolver:
         levels = list(map(LevelReport, layout.priorities, layout.level_tasks,
                           norms[task_count:], (solved / level_scale).tolist(),
                           (self.damping / level_scale).tolist(),
-                          self._conditions(jacobian, target, solved.tolist())))
+                          self._conditions(jacobian, target, solved.tolist(), held)))
         for task in layout.disabled_tasks:
             _, task_error = task.jacobian_and_error(self.robot, q)
             task_errors[task.name] = task.distance_outside(self.robot) \
@@ -510,14 +516,14 @@ class PIKSolver:
             task_errors[task.name] = task.distance_outside(self.robot)
         return levels, task_errors
 
-    def _conditions(self, jacobian, target, step_residuals) -> list:
+    def _conditions(self, jacobian, target, step_residuals, held) -> list:
         """LevelReport.decide_condition of each level with tasks (the strategy's extra
         levels, last, are not reported): _level_condition's arguments, on one copy of the
         step's rows shared by the levels (the solver's arrays are reused next step; a
-        step whose report nobody reads pays the copy only)."""
+        step whose report nobody reads pays the copies only)."""
         offsets = self._layout.offsets
         problem = (jacobian[:offsets[-1]].copy(), target[:offsets[-1]].copy(), offsets,
-                   self.damping ** 2, self._layout.level_scale.copy())
+                   self.damping ** 2, self._layout.level_scale.copy(), held)
         return [(problem, level, residual)
                 for level, residual in enumerate(step_residuals[:len(offsets) - 1])]
 
@@ -793,29 +799,39 @@ _NO_CASCADE_STATE = empty_cascade_state(0, 0, np.zeros(1, dtype=np.int64))
 
 def _level_condition(problem, level, step_residual) -> str:
     """LevelReport.condition of a level of problem = (stacked rows and targets, each level
-    scaled by its LM factor, level offsets, damping^2, the factors), which the hierarchy
-    left with this step residual (of the scaled rows)."""
-    jacobian, target, offsets, damping_sq, scale = problem
+    scaled by its LM factor, level offsets, damping^2, the factors, held), which the
+    hierarchy left with this step residual (of the scaled rows). held = (the DoFs the
+    clamping loop fixed and their variations, the bounds on dq: (lower, upper) or the call
+    that makes them (PIKSolver._dq_bounds), the step residuals before velocity saturation
+    or None when nothing saturated)."""
+    jacobian, target, offsets, damping_sq, scale, held = problem
     rows = jacobian[offsets[level]:offsets[level + 1]]
     wanted = target[offsets[level]:offsets[level + 1]]
-    met = MET_RELATIVE * float(np.linalg.norm(wanted))
+    met = max(MET_RELATIVE * float(np.linalg.norm(wanted)), MET_ABSOLUTE)
     if step_residual <= met:
         return "met"
     factor = scale[level]
     alone = _damped_least_squares(rows, wanted, damping_sq * factor * factor)  # lambda: damping
     if float(np.linalg.norm(rows @ alone - wanted)) > met:
         return "singular"
-    if factor == 1.0:
-        return "conflict"
-    # LM damping on: would the levels above (as solved) leave it its step at lambda =
-    # damping? Then its own damping is what holds the step back, else they take it too
+    fixed, fixed_dq, bounds, unsaturated = held
+    if factor == 1.0 or (unsaturated is not None and step_residual > unsaturated[level] + met):
+        return "conflict"           # ... or the velocity limits took part of its step
+    # LM damping on: would the levels above (as solved) and the fixed DoFs leave it its step
+    # at lambda = damping, within the bounds on dq (joint and velocity limits)? Then its
+    # own damping is what holds the step back, else they take it too
+    index = np.flatnonzero(fixed)
     end = offsets[level + 1]
     prefix_jacobian, prefix_target = jacobian[:end].copy(), target[:end].copy()
     prefix_jacobian[offsets[level]:end] /= factor
     prefix_target[offsets[level]:end] /= factor
     prefix = DampedHierarchy(damping=math.sqrt(damping_sq)).solve_stacked(
-        prefix_jacobian, prefix_target, offsets[:level + 2])
-    return "damped" if prefix.step_residuals[level] <= met / factor else "conflict"
+        prefix_jacobian, prefix_target, offsets[:level + 2], index, fixed_dq[index])
+    lower, upper = bounds() if callable(bounds) else bounds
+    free = ~fixed
+    within = np.all(prefix.dq[free] >= lower[free] - BINDING_TOLERANCE) and \
+        np.all(prefix.dq[free] <= upper[free] + BINDING_TOLERANCE)
+    return "damped" if within and prefix.step_residuals[level] <= met / factor else "conflict"
 
 
 def make_hierarchy(hierarchy, robot, damping: float, dt: float | None):
