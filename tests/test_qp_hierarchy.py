@@ -431,6 +431,36 @@ def test_talos_damping_bounds_are_named_damped(talos):
     assert "gripper_left_joint" in damped
 
 
+class BoundedHierarchy:
+    """A hierarchy object of the user's own with bounds on dq (PIKSolver's `hierarchy`),
+    here a QPHierarchy behind a plain interface: no with_damping_bounds."""
+
+    uses_bounds = True
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def solve_stacked(self, *args, **options):
+        return self.inner.solve_stacked(*args, **options)
+
+
+def test_a_hierarchy_object_without_damped_names_keeps_its_own(talos):
+    """The step's binding names are decided at the first read: one that cannot say which
+    bounds are damped variations keeps its names (the damped grippers' bound as their
+    limit side), and reading them raises nothing."""
+    dt = 0.002
+    q = bench_start(talos)
+    hierarchy = BoundedHierarchy(QPHierarchy.for_robot(talos, dt=dt, damping=DAMPING))
+    solver = talos_solver(talos, q, hierarchy, [0.25, -0.2, 0.2], dt=dt)
+    seen = set()
+    for _ in range(10):
+        result = solver.step(q)
+        seen.update(result.binding_constraints)
+        q = result.q
+    assert {name.rsplit(" ", 1)[1] for name in seen} <= {"lower", "upper", "velocity"}
+    assert any(name.startswith("gripper_left_joint ") for name in seen)
+
+
 def test_talos_repeated_steps_are_reproducible(talos):
     """Fresh solvers and a warm solver give the same step from the same configuration, and
     name the same binding bounds, but for a bound the step lies on with a zero multiplier

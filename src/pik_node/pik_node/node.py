@@ -172,7 +172,8 @@ class PikNode(Node):
         self.declare_parameter("hierarchy", "svd", describe(
             f"prioritized solver: {', '.join(HIERARCHIES)} (qp: bounds as inequalities)"))
         self.declare_parameter("damping", 1e-3, describe(
-            "damped least squares lambda once the targets are reached",
+            "damped least squares lambda once the targets are reached (> 0 unless "
+            "lm_damping is 0)",
             floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0)]))
         self.declare_parameter("lm_damping", LM_DAMPING, describe(
             "Levenberg-Marquardt scale: lambda^2 = damping^2 + lm_damping |step targets|^2 "

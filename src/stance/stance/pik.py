@@ -340,7 +340,8 @@ class PIKSolver:
         v = self.limits.v_index
         damped = fixed[v] & (h[v] > 0.0) & (h[v] < 1.0) & (fixed_dq[v] != 0.0)
         on = v[damped & (np.abs(dq[v] - fixed_dq[v]) <= BINDING_TOLERANCE)]
-        return self.hierarchy.with_damping_bounds(names, on)
+        rename = getattr(self.hierarchy, "with_damping_bounds", None)  # a hierarchy object
+        return names if rename is None else rename(names, on)         # may not name them
 
     def _clamping(self, q, jacobian, target, offsets, bounds, fixed, fixed_dq, h,
                   solution=None, inequalities=None):
