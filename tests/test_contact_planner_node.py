@@ -35,11 +35,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 
 
 class PlannerClient(BackgroundNode):
-    """Sends PlanContacts goals, collects feedback, cancels.
-
-    Client calls run in the spinning thread: rclpy's ActionClient registers a request's
-    future after sending it, so a response handled meanwhile by the spinning thread would
-    be dropped (ros2/rclpy#1123)."""
+    """Sends PlanContacts goals, collects feedback, cancels."""
 
     def __init__(self, name="planner_client", domain_id=None):
         super().__init__(name, domain_id)
@@ -48,17 +44,15 @@ class PlannerClient(BackgroundNode):
         self.start_spinning()
 
     def _call(self, function, *args, timeout=30.0, what="response", **kwargs):
-        """function(*args, **kwargs) in the spinning thread; waits for the future it
-        returns and gives that future's result."""
-        task = self.executor.create_task(function, *args, **kwargs)
-        wait_until(task.done, 10, what=f"the {what} request to be sent")
-        future = task.result()
-        wait_until(future.done, timeout, what=what)
-        return future.result()
+        answer = self.call(function, *args, timeout=timeout, **kwargs)
+        if answer is None:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        return answer
 
     def send(self, goal, timeout=30.0):
-        """The goal handle (accepted or not)."""
-        assert self.client.wait_for_server(timeout_sec=timeout), "no action server"
+        """The goal handle (accepted or not), sent once the server answers requests."""
+        wait_until(lambda: self.action_server_answers(self.client), timeout,
+                   what="the action server to answer")
         return self._call(self.client.send_goal_async, goal, timeout=timeout,
                           what="goal response", feedback_callback=self._on_feedback)
 

@@ -4,10 +4,16 @@ of the demo's graph client and of the tests' probes."""
 from __future__ import annotations
 
 import threading
+import time
+import uuid
 
 import rclpy
+from rclpy.action.client import ClientGoalHandle
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from unique_identifier_msgs.msg import UUID
+
+PROBE_WAIT = 1.0  # s: how long action_server_answers waits for the probe's answer
 
 
 class BackgroundNode:
@@ -29,6 +35,32 @@ class BackgroundNode:
     def _spin(self):
         while self._running and self.context.ok():
             self.executor.spin_once(timeout_sec=0.05)
+
+    def call(self, function, *args, timeout: float, **kwargs):
+        """The result of the future that function(*args, **kwargs) returns, the call made in
+        the spinning thread (an rclpy ActionClient can handle the answer to a request before
+        its *_async method has registered the future, ros2/rclpy#1123); None after
+        timeout s."""
+        task = self.executor.create_task(function, *args, **kwargs)
+        deadline = time.monotonic() + timeout
+        while not (task.done() and task.result().done()):
+            if time.monotonic() > deadline:
+                return None
+            time.sleep(0.02)
+        return task.result().result()
+
+    def action_server_answers(self, client, timeout: float = PROBE_WAIT) -> bool:
+        """Whether the server of `client` (an ActionClient of this node) answers a request
+        within timeout s. ActionClient.server_is_ready only says that the server's request
+        readers match ours, while Fast DDS drops a response whose reader the server has not
+        matched within 100 ms (ros2/rmw_fastrtps#390): a goal sent right after discovery can
+        stay unanswered. The probe, a result request for an unknown goal, has no side effect
+        (the answer is STATUS_UNKNOWN) and goes through the result service, which rcl_action
+        creates after the goal and cancel services."""
+        if not client.server_is_ready():
+            return False
+        unknown_goal = ClientGoalHandle(client, UUID(uuid=list(uuid.uuid4().bytes)), None)
+        return self.call(unknown_goal.get_result_async, timeout=timeout) is not None
 
     def close(self):
         self._running = False

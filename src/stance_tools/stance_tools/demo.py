@@ -204,7 +204,7 @@ class GraphClient(BackgroundNode):
     def ready(self) -> str | None:
         """None once the action server, trajectory_node's status and every recorded topic's
         subscribers are there; else what is still missing."""
-        if not self.client.server_is_ready():
+        if not self.action_server_answers(self.client):
             return "the PlanContacts action server"
         if not self.status_count():
             return "trajectory_node's status"
@@ -214,26 +214,14 @@ class GraphClient(BackgroundNode):
                 return f"{topic}: publisher and {count} subscriber(s)"
         return None
 
-    def _call(self, function, *args, timeout: float):
-        """function(*args) in the spinning thread (an ActionClient request's answer can be
-        handled before send_*_async returns, ros2/rclpy#1123); the result of its future,
-        None after timeout s."""
-        task = self.executor.create_task(function, *args)
-        deadline = time.monotonic() + timeout
-        while not (task.done() and task.result().done()):
-            if time.monotonic() > deadline:
-                return None
-            time.sleep(0.02)
-        return task.result().result()
-
     def plan(self, scene: str, timeout: float):
         """The PlanContacts result for the scene (None when the goal is rejected or times
         out)."""
-        handle = self._call(self.client.send_goal_async, self.goal_type(scene=scene),
+        handle = self.call(self.client.send_goal_async, self.goal_type(scene=scene),
                             timeout=30.0)
         if handle is None or not handle.accepted:
             return None
-        response = self._call(handle.get_result_async, timeout=timeout)
+        response = self.call(handle.get_result_async, timeout=timeout)
         return None if response is None else response.result
 
     def wait_status(self, since: int, states, timeout: float) -> str | None:
