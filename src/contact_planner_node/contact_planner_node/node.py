@@ -69,6 +69,8 @@ class ContactPlannerNode(Node):
         self.planner = PlannerProcess(self.robot_spec)
         self._busy = threading.Lock()          # held from goal acceptance to the result
         self._stopping = threading.Event()     # the node shuts down: running plans stop
+        self._plan_state = threading.Condition()  # guards _planning against _stopping
+        self._planning = False                 # a goal is using the planner process
         self.plan_pub = self.create_publisher(StancePlan, PLAN_TOPIC, LATCHED)
         self._action_server = ActionServer(
             self, PlanContacts, ACTION_NAME, execute_callback=self._execute,
@@ -99,14 +101,15 @@ class ContactPlannerNode(Node):
             integer_range=[IntegerRange(from_value=1, to_value=MAX_WORKERS, step=1)]))
 
     def stop_planning(self):
-        """Make a running plan stop (shutdown) and wait, at most STOP_WAIT s, until its
-        goal has its result: rclpy's Executor.shutdown(timeout_sec) does not wait for
+        """Make a running plan stop (shutdown) and wait, at most STOP_WAIT s, until it has
+        left the planner process: rclpy's Executor.shutdown(timeout_sec) does not wait for
         running callbacks, so destroy_node would otherwise close the planner process under
-        the plan's thread."""
-        self._stopping.set()
-        if not self._busy.acquire(timeout=STOP_WAIT):
-            self.get_logger().warning(f"the running plan did not end within {STOP_WAIT} s "
-                                      "of shutdown; closing its planner process anyway")
+        the plan's thread. A goal accepted but not yet executing never starts planning."""
+        with self._plan_state:
+            self._stopping.set()
+            if not self._plan_state.wait_for(lambda: not self._planning, timeout=STOP_WAIT):
+                self.get_logger().warning(f"the running plan did not end within {STOP_WAIT} "
+                                          "s of shutdown; closing its planner process anyway")
 
     def destroy_node(self):
         self.planner.close()
@@ -119,9 +122,18 @@ class ContactPlannerNode(Node):
         return GoalResponse.REJECT
 
     def _execute(self, goal_handle) -> PlanContacts.Result:
+        with self._plan_state:
+            planning = self._planning = not self._stopping.is_set()
         try:
+            if not planning:
+                goal_handle.abort()
+                return PlanContacts.Result(success=False, reason=CANCELLED,
+                                           message="the node is shutting down")
             return self._plan(goal_handle)
         finally:
+            with self._plan_state:
+                self._planning = False
+                self._plan_state.notify_all()
             self._busy.release()
 
     def _plan(self, goal_handle) -> PlanContacts.Result:
