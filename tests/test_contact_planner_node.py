@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pinocchio as pin
 import pytest
+import rclpy
 from action_msgs.msg import GoalStatus
 from conftest import wait_until
 from contact_planner_node.conversions import (GoalRejected, contact_from_msg, contact_msg,
@@ -276,6 +277,40 @@ def test_sigint_during_a_plan_stops_the_node_and_its_planner_process(processes):
         wait_until(lambda: not _session_alive(node.pid), 5, what="the node's session to end")
     finally:
         client.close()
+
+
+class RecordedGoalHandle:
+    """The goal handle an executing PlanContacts goal sees, recording how it ends."""
+
+    def __init__(self, goal):
+        self.request = goal
+        self.is_cancel_requested = False
+        self.ended = None
+
+    def abort(self):
+        self.ended = "aborted"
+
+
+def test_a_goal_accepted_but_not_executing_at_shutdown_ends_without_a_wait():
+    from contact_planner_node.node import ContactPlannerNode
+    from rclpy.action import GoalResponse
+    from stance.planning.planner import CANCELLED
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 150) % 200)
+    node = ContactPlannerNode(context=context)
+    try:
+        goal = PlanContacts.Goal(scene="flat_steps")
+        assert node._on_goal(goal) == GoalResponse.ACCEPT
+        started = time.monotonic()
+        node.stop_planning()  # the executor has not run the goal yet
+        assert time.monotonic() - started < 1.0
+        handle = RecordedGoalHandle(goal)
+        result = node._execute(handle)
+        assert handle.ended == "aborted" and result.reason == CANCELLED, result
+        assert not node._busy.locked()  # the next goal can be accepted
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
 
 
 @pytest.mark.parametrize("parameter, reason", [
