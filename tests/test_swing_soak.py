@@ -5,7 +5,8 @@ than 0.5 degrees outside its cone or polygon, no twist beyond its interval by mo
 1e-9 rad, no grouped joint beyond its own bounds by more than 1e-9 rad; a swing or joint
 group started outside never moves further out, and a group is back within them by the end
 of its episode; a star-shaped (non-convex) shoulder polygon holds too; the same episode
-gives the same bits twice, on either hierarchy."""
+gives the same bits twice, on either hierarchy. Progressive clamping runs the same soaks on
+the QP hierarchy too."""
 
 import math
 from pathlib import Path
@@ -22,8 +23,8 @@ from stance.robot import Robot
 from stance.swing import (load_limit_file, parse_limits, rotation_from_swing_twist,
                           swing_twist)
 
-MANNEQUIN_STEPS = 30_000   # per strategy
-TALOS_STEPS = 20_000       # per strategy: 10^5 steps in all
+MANNEQUIN_STEPS = 30_000   # per strategy and hierarchy
+TALOS_STEPS = 20_000       # per strategy and hierarchy: 10^5 steps in all on the SVD one
 STAR_STEPS = 5_000         # progressive clamping, a star-shaped shoulder polygon
 EPISODE_STEPS = 100
 SWING_TOLERANCE = math.radians(0.5)
@@ -44,11 +45,13 @@ def push_outside(robot, models, q, rng) -> None:
         set_swing_twist(robot, q, model.joint, s, theta)
 
 
-@pytest.mark.parametrize("strategy", ["clamping", "progressive"])
-def test_mannequin_swings_hold_over_random_steps(strategy):
+@pytest.mark.parametrize("strategy, hierarchy, steps", [
+    ("clamping", "svd", MANNEQUIN_STEPS), ("progressive", "svd", MANNEQUIN_STEPS),
+    ("progressive", "qp", MANNEQUIN_STEPS)])
+def test_mannequin_swings_hold_over_random_steps(strategy, hierarchy, steps):
     robot = build_mannequin()
     models = load_limit_file(MANNEQUIN_LIMIT_FILE, robot)
-    for seed in range(MANNEQUIN_STEPS // EPISODE_STEPS):
+    for seed in range(steps // EPISODE_STEPS):
         rng = np.random.default_rng(seed)
         start = mannequin_start(robot, models, rng)
         if rng.random() < 0.3:
@@ -56,7 +59,7 @@ def test_mannequin_swings_hold_over_random_steps(strategy):
         excess = excesses(models, start)
         allowed = np.maximum(excess, [SWING_TOLERANCE, TOLERANCE])
         for q, _ in mannequin_run(robot, models, start, seed, rng.random() < 0.5, strategy,
-                                  EPISODE_STEPS):
+                                  EPISODE_STEPS, hierarchy=hierarchy):
             following = excesses(models, q)
             assert np.all(following <= allowed + TOLERANCE), \
                 f"seed {seed}: {models[int(np.argmax(following.max(axis=1)))].joint}"
@@ -116,28 +119,30 @@ def group_excesses(groups, q) -> np.ndarray:
                       bound_excess(group, q)] for group in groups])
 
 
-@pytest.mark.parametrize("strategy", ["clamping", "progressive"])
-def test_talos_groups_hold_over_random_steps(strategy):
+@pytest.mark.parametrize("strategy, hierarchy, steps", [
+    ("clamping", "svd", TALOS_STEPS), ("progressive", "svd", TALOS_STEPS),
+    ("progressive", "qp", TALOS_STEPS)])
+def test_talos_groups_hold_over_random_steps(strategy, hierarchy, steps):
     """Within the tolerances from inside; a group started outside (one episode in four)
     never moves further out, and moves back within them."""
     robot = Robot.load("talos")
     groups = load_limit_file("talos", robot)
     outside = 0
     tolerances = [SWING_TOLERANCE, TOLERANCE, TOLERANCE]
-    for seed in range(TALOS_STEPS // EPISODE_STEPS):
+    for seed in range(steps // EPISODE_STEPS):
         rng = np.random.default_rng(seed)
         start = robot.initial_configuration()
         if seed % 4 == 1:
             outside += bool(push_groups_outside(groups, start, rng))
         allowed = np.maximum(group_excesses(groups, start), tolerances)
         for q, _ in talos_group_run(robot, groups, seed, seed % 3 != 0, strategy,
-                                    EPISODE_STEPS, start):
+                                    EPISODE_STEPS, start, hierarchy):
             following = group_excesses(groups, q)
             assert np.all(following <= allowed + TOLERANCE), \
                 (seed, groups[int(np.argmax((following - allowed).max(axis=1)))].name)
             allowed = np.maximum(np.minimum(allowed, following), tolerances)
         assert np.all(following <= np.array(tolerances) + TOLERANCE), seed
-    assert outside >= TALOS_STEPS // EPISODE_STEPS // 8
+    assert outside >= steps // EPISODE_STEPS // 8
 
 
 @pytest.mark.parametrize("hierarchy", ["svd", "qp"])
