@@ -73,10 +73,11 @@ def test_bench_levels_compares_each_level_count_with_one_less(tmp_path):
 
 def test_bench_pik_runs_the_issue_stack_against_pink(tmp_path):
     """By default the stack is feet > CoM > both hands > posture, both hands moved (the
-    left one mirrored), and every Pink contender solves the same problem."""
+    left one mirrored), and every Pink contender solves the same problem; the back-to-back
+    race takes the interleaved race's steps in blocks."""
     output = tmp_path / "pik.json"
     assert stance(["bench", "pik", "--steps", "20", "--warmup", "5", "--backends", "daqp",
-                   "--json", str(output)]) == 0
+                   "--block", "7", "--json", str(output)]) == 0
     result = json.loads(output.read_text())
     assert result["stack"] == "hands"
     right = result["hand_offsets"]["right_hand"]
@@ -91,6 +92,10 @@ def test_bench_pik_runs_the_issue_stack_against_pink(tmp_path):
         progressive["median_us"] / pink["median_us"])
     assert set(progressive["final_task_errors"]) == {
         "left_foot", "right_foot", "com", "left_hand", "right_hand", "posture"}
+    assert result["block"] == 7
+    for name, entry in result["back_to_back"].items():
+        assert entry["timed_steps"] == 20 and entry["failed_at_step"] is None
+        assert entry["final_task_errors"] == contenders[name]["final_task_errors"], name
 
 
 def test_bench_pik_demo_stack_moves_the_right_hand_only(tmp_path):

@@ -3,7 +3,8 @@
 - pik: one library IK step on Talos, PIKSolver (strategies none / clamping / progressive,
   and progressive on the QP hierarchy) against Pink's solve_ik on every available QP
   backend, same robot, stack and targets: feet > CoM > both hands > posture (`--stack
-  hands`, the default), or pik_node's demo stack with the right hand only (`--stack demo`).
+  hands`, the default), or pik_node's demo stack with the right hand only (`--stack demo`);
+  the same steps timed interleaved (one step each in turn) and back to back (blocks).
 - levels: cost of a step as priority levels are added, SVD and QP hierarchies side by side
   (Talos, 1 to 4 levels; Panda arm, 2 levels).
 - groups: cost of a step with Talos' hips and shoulders limited as ball / swing joints
@@ -111,6 +112,7 @@ HANDS_FORWARD = mirrored_hands((0.25, -0.2, 0.2))
 PIK_STACKS = ("hands", "demo")
 STRATEGIES = ("progressive", "clamping", "none")
 PINK_BACKENDS = ("quadprog", "daqp", "proxqp")
+BACK_TO_BACK_BLOCK = 100   # steps a contender takes in a row in bench pik's back-to-back race
 GRIPPER_JOINTS = ("gripper_left_joint", "gripper_right_joint")
 GRIPPER_MARGIN = 0.01      # rad inside the grippers' upper limit (0) at the start
 COST_PER_LEVEL = 10.0      # Pink has no priorities: cost 10^-priority * sqrt(weight)
@@ -131,6 +133,9 @@ def add_pik_arguments(parser) -> None:
                         help="step period (s): velocity limits for both solvers")
     parser.add_argument("--backends", nargs="+", default=PINK_BACKENDS,
                         help="Pink QP backends (those not installed are skipped)")
+    parser.add_argument("--block", type=int, default=BACK_TO_BACK_BLOCK,
+                        help="steps each contender takes in a row in the second, back-to-back "
+                             "race (the first interleaves single steps)")
     parser.add_argument("--json", help="also write the figures to this JSON file")
 
 
@@ -247,35 +252,48 @@ def limit_excess(robot, q) -> float:
     return float(np.maximum(0.0, np.maximum(values - robot.upper, robot.lower - values)).max())
 
 
-def race(contenders, robot, start, steps, states=None) -> dict:
-    """Every contender takes step k before any takes step k+1, in an order rotated at each
-    step, so machine noise spreads evenly. Pink errors mark a contender failed. states: one
-    configuration per step; every contender then takes step k from states[k] instead of
-    from its own last configuration (open loop, the same inputs for all)."""
-    from pink.exceptions import PinkError
-
+def race(contenders, robot, start, steps, states=None, block=1) -> dict:
+    """Every contender takes steps k..k+block-1 before any takes the next block, in an order
+    rotated at each block, so machine noise spreads evenly. block 1 (interleaved): each step
+    runs after every other contender's, its caches cold, as in a node whose loop does other
+    work between steps; a larger block (back to back): caches warm, as in the posture
+    generator's loop. Pink errors mark a contender failed. states: one configuration per
+    step; every contender then takes step k from states[k] instead of from its own last
+    configuration (open loop, the same inputs for all)."""
     records = {contender.name: Record() for contender in contenders}
     configurations = {contender.name: start for contender in contenders}
     for contender in contenders:
         contender.reset(start)
-    for step in range(steps):
-        shift = step % len(contenders)
+    for first in range(0, steps, block):
+        shift = first // block % len(contenders)
         for contender in contenders[shift:] + contenders[:shift]:
-            record = records[contender.name]
-            if record.failed_at is not None:
-                continue
-            begin = time.perf_counter_ns()
-            try:
-                q, iterations = contender.step(configurations[contender.name]
-                                               if states is None else states[step])
-            except PinkError as error:
-                record.failed_at, record.failure = step, f"{type(error).__name__}: {error}"
-                continue
-            record.times_ns.append(time.perf_counter_ns() - begin)
-            record.iterations.append(iterations)
-            record.max_limit_excess = max(record.max_limit_excess, limit_excess(robot, q))
-            configurations[contender.name] = record.q = q
+            for step in range(first, min(first + block, steps)):
+                q = configurations[contender.name] if states is None else states[step]
+                q = _timed_step(contender, records[contender.name], robot, step, q)
+                if q is None:
+                    break
+                configurations[contender.name] = q
     return records
+
+
+def _timed_step(contender, record, robot, step, q):
+    """The contender's configuration after one timed step from q, recorded; None once it has
+    failed (a Pink error)."""
+    from pink.exceptions import PinkError
+
+    if record.failed_at is not None:
+        return None
+    begin = time.perf_counter_ns()
+    try:
+        q, iterations = contender.step(q)
+    except PinkError as error:
+        record.failed_at, record.failure = step, f"{type(error).__name__}: {error}"
+        return None
+    record.times_ns.append(time.perf_counter_ns() - begin)
+    record.iterations.append(iterations)
+    record.max_limit_excess = max(record.max_limit_excess, limit_excess(robot, q))
+    record.q = q
+    return q
 
 
 def figures(records, evaluator) -> dict:
@@ -332,6 +350,20 @@ def start_note(robot, specs, targets, backends, dt) -> str:
             f"{', '.join(outcomes)}.")
 
 
+def print_timing_table(result) -> None:
+    """Timing columns of print_table only."""
+    print(f"{'contender':<24}{'median us':>10}{'p99 us':>10}{'max us':>10}{'stance/pink':>13}")
+    for name, entry in result.items():
+        if entry["median_us"] is None:
+            print(f"{name:<24} failed at timed step {entry['failed_at_step']}")
+            continue
+        ratio = entry["stance_over_pink_median"]
+        print(f"{name:<24}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
+              f"{entry['max_us']:>10.1f}{'-' if ratio is None else f'{ratio:.2f}':>13}")
+        if entry["failed_at_step"] is not None:
+            print(f"{'':<24} failed at timed step {entry['failed_at_step']}")
+
+
 def print_table(result, errors_order) -> None:
     task_columns = "".join(f"{name:>12}" for name in errors_order)
     print(f"{'contender':<24}{'median us':>10}{'p99 us':>10}{'max us':>10}{'iters':>7}"
@@ -386,25 +418,32 @@ def run_pik(args) -> int:
                        for backend in backends]
         note = start_note(robot, specs, targets, backends, args.dt)
         race(contenders, robot, start, args.warmup)
-        records = race(contenders, robot, start, args.steps)  # same trajectory from start
-    result = figures(records, evaluator)
+        # Both races take the same trajectory from the start.
+        result = figures(race(contenders, robot, start, args.steps), evaluator)
+        back_to_back = figures(race(contenders, robot, start, args.steps, block=args.block),
+                               evaluator)
 
     print(f"stance bench pik: Talos (nv {robot.model.nv}), {args.stack} stack "
           f"({', '.join(f'{spec.name} {spec.priority}' for spec in specs)}), targets moved "
           f"from the start by {offsets} m, dt {args.dt} s, "
-          f"{args.steps} timed steps after {args.warmup} warm-up, one BLAS thread, "
-          f"round-robin order")
+          f"{args.steps} timed steps after {args.warmup} warm-up, one BLAS thread")
     print("Pink costs 10^-priority per task, gains as in the stack, default limits"
           + (f"; backends not installed: {', '.join(skipped)}" if skipped else ""))
     print(note)
+    print("Interleaved: every contender takes one step in turn (caches cold at each step, "
+          "as in a node doing other work between steps)")
     print_table(result, [spec.name for spec in specs])
     print("iters: mean hierarchy solutions per step (clamping loop); excess: worst limit "
           "violation over the run; task errors at the final configuration (m, rad)")
+    print(f"Back to back: every contender takes {args.block} steps in turn (caches warm, as "
+          "in the posture generator's loop)")
+    print_timing_table(back_to_back)
     if args.json:
         with open(args.json, "w") as output:
             json.dump({"robot": "talos", "steps": args.steps, "warmup": args.warmup,
                        "dt": args.dt, "stack": args.stack, "hand_offsets": offsets,
-                       "note": note, "contenders": result}, output, indent=2)
+                       "note": note, "contenders": result, "block": args.block,
+                       "back_to_back": back_to_back}, output, indent=2)
     return 0
 
 
