@@ -1,9 +1,11 @@
-"""BackgroundNode.action_server_answers: the probe that a goal sent next gets its answer.
-It says no while there is no server, yes once one answers, and creates no goal."""
+"""BackgroundNode: call() hands back what the spinning thread's call gave, an exception
+included, and forgets a request it gave up on; action_server_answers() says no while the
+server is absent or does not answer, yes once it answers, and leaves no request behind."""
 
-import time
-
+import pytest
+from conftest import wait_until
 from rclpy.action import ActionClient, ActionServer, GoalResponse
+from rclpy.task import Future
 from stance_msgs.action import PlanContacts
 from stance_tools.background_node import BackgroundNode
 
@@ -11,7 +13,8 @@ ACTION = "/probe_test/plan_contacts"
 
 
 class GoalCounter(BackgroundNode):
-    """A PlanContacts server that counts the goals it is asked to accept and rejects them."""
+    """A PlanContacts server that counts the goals it is asked to accept and rejects them;
+    silent (discovered, answering nothing) until start_spinning()."""
 
     def __init__(self):
         super().__init__("probe_test_server")
@@ -19,30 +22,56 @@ class GoalCounter(BackgroundNode):
         self.server = ActionServer(self.node, PlanContacts, ACTION,
                                    execute_callback=lambda handle: PlanContacts.Result(),
                                    goal_callback=self._on_goal)
-        self.start_spinning()
 
     def _on_goal(self, goal):
         self.goals += 1
         return GoalResponse.REJECT
 
 
-def test_the_probe_says_no_without_a_server_and_yes_without_creating_a_goal():
-    client = BackgroundNode("probe_test_client")
-    action_client = ActionClient(client.node, PlanContacts, ACTION)
-    client.start_spinning()
-    server = None
+@pytest.fixture
+def client():
+    node = BackgroundNode("probe_test_client")
+    node.action_client = ActionClient(node.node, PlanContacts, ACTION)
+    node.start_spinning()
+    yield node
+    node.close()
+
+
+def pending_requests(action_client) -> int:
+    return len(action_client._pending_result_requests) + len(action_client._futures)
+
+
+def test_call_raises_what_the_call_raised_and_the_thread_spins_on(client):
+    with pytest.raises(TypeError):
+        client.call(client.action_client.send_goal_async, "not a goal", timeout=5.0)
+    assert client.call(lambda: _done(7), timeout=5.0) == 7
+
+
+def test_call_gives_up_after_its_timeout(client):
+    assert client.call(Future, timeout=0.2) is None
+
+
+def _done(value) -> Future:
+    future = Future()
+    future.set_result(value)
+    return future
+
+
+def test_the_probe_says_no_until_the_server_answers_and_creates_no_goal(client):
+    assert not client.action_server_answers(client.action_client, timeout=0.3)  # no server
+    server = GoalCounter()
     try:
-        started = time.monotonic()
-        assert not client.action_server_answers(action_client, timeout=0.5)
-        assert time.monotonic() - started < 5.0
-        server = GoalCounter()
-        deadline = time.monotonic() + 30.0
-        while not client.action_server_answers(action_client):
-            assert time.monotonic() < deadline, "the server never answered the probe"
-        assert server.goals == 0
-        handle = client.call(action_client.send_goal_async, PlanContacts.Goal(), timeout=10.0)
+        wait_until(client.action_client.server_is_ready, 30, what="the server's discovery")
+        # discovered but not spinning: the probe goes unanswered and is forgotten
+        assert not client.action_server_answers(client.action_client, timeout=0.5)
+        client.call(lambda: _done(None), timeout=1.0)  # lets the cancellation run
+        assert pending_requests(client.action_client) == 0
+        server.start_spinning()
+        answered = [client.action_server_answers(client.action_client) for _ in range(30)]
+        assert any(answered), "the server never answered the probe"
+        assert server.goals == 0 and pending_requests(client.action_client) == 0
+        handle = client.call(client.action_client.send_goal_async, PlanContacts.Goal(),
+                             timeout=10.0)
         assert handle is not None and not handle.accepted and server.goals == 1
     finally:
-        client.close()
-        if server is not None:
-            server.close()
+        server.close()

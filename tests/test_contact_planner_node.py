@@ -296,7 +296,7 @@ def test_a_goal_accepted_but_not_executing_at_shutdown_ends_without_a_wait():
     from rclpy.action import GoalResponse
     from stance.planning.planner import CANCELLED
     context = rclpy.Context()
-    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 150) % 200)
+    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)
     node = ContactPlannerNode(context=context)
     try:
         goal = PlanContacts.Goal(scene="flat_steps")

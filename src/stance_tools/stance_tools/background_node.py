@@ -11,6 +11,7 @@ import rclpy
 from rclpy.action.client import ClientGoalHandle
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.task import Future
 from unique_identifier_msgs.msg import UUID
 
 PROBE_WAIT = 1.0  # s: how long action_server_answers waits for the probe's answer
@@ -23,6 +24,7 @@ class BackgroundNode:
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = Node(name, context=self.context)
+        self.executor, self._thread = None, None    # until start_spinning()
 
     def start_spinning(self):
         """Call once the node's entities exist."""
@@ -39,12 +41,17 @@ class BackgroundNode:
     def call(self, function, *args, timeout: float, **kwargs):
         """The result of the future that function(*args, **kwargs) returns, the call made in
         the spinning thread (an rclpy ActionClient can handle the answer to a request before
-        its *_async method has registered the future, ros2/rclpy#1123); None after
-        timeout s."""
-        task = self.executor.create_task(function, *args, **kwargs)
+        its *_async method has registered the future, ros2/rclpy#1123); an exception it
+        raises is raised here, the spinning thread going on. None after timeout s: the call
+        is then not made, or its future cancelled (the client forgets the request)."""
+        task = self.executor.create_task(_future_of, function, args, kwargs)
         deadline = time.monotonic() + timeout
         while not (task.done() and task.result().done()):
             if time.monotonic() > deadline:
+                if task.done():
+                    self.executor.create_task(task.result().cancel)
+                else:
+                    task.cancel()
                 return None
             time.sleep(0.02)
         return task.result().result()
@@ -53,18 +60,33 @@ class BackgroundNode:
         """Whether the server of `client` (an ActionClient of this node) answers a request
         within timeout s. ActionClient.server_is_ready only says that the server's request
         readers match ours, while Fast DDS drops a response whose reader the server has not
-        matched within 100 ms (ros2/rmw_fastrtps#390): a goal sent right after discovery can
-        stay unanswered. The probe, a result request for an unknown goal, has no side effect
-        (the answer is STATUS_UNKNOWN) and goes through the result service, which rcl_action
-        creates after the goal and cancel services."""
+        matched within 100 ms (ros2/rmw_fastrtps#390, a warning in the server's log): a
+        goal sent right after discovery can stay unanswered. The probe, a result request
+        for an unknown goal, leaves nothing behind on the server (the answer is
+        STATUS_UNKNOWN). It goes through the result service, which rcl_action creates after
+        the goal and cancel services: an answer means the server has matched our result
+        reader, and so the goal and cancel ones, as long as the server matches our readers in
+        the order they were announced (one reliable builtin writer announces them)."""
         if not client.server_is_ready():
             return False
         unknown_goal = ClientGoalHandle(client, UUID(uuid=list(uuid.uuid4().bytes)), None)
         return self.call(unknown_goal.get_result_async, timeout=timeout) is not None
 
     def close(self):
-        self._running = False
-        self._thread.join(timeout=2.0)
-        self.executor.shutdown()
+        if self._thread is not None:
+            self._running = False
+            self._thread.join(timeout=2.0)
+            self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def _future_of(function, args, kwargs) -> Future:
+    """function(*args, **kwargs), a future; the future of the exception if it raises (which
+    would otherwise end the executor's spin)."""
+    try:
+        return function(*args, **kwargs)
+    except Exception as error:  # noqa: BLE001 - handed to the caller through the future
+        failed = Future()
+        failed.set_exception(error)
+        return failed

@@ -31,6 +31,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import argparse  # noqa: E402
 import importlib  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
@@ -118,6 +119,14 @@ GRIPPER_MARGIN = 0.01      # rad inside the grippers' upper limit (0) at the sta
 COST_PER_LEVEL = 10.0      # Pink has no priorities: cost 10^-priority * sqrt(weight)
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def add_pik_arguments(parser) -> None:
     parser.add_argument("--steps", type=int, default=2000, help="timed steps per contender")
     parser.add_argument("--warmup", type=int, default=200,
@@ -133,7 +142,7 @@ def add_pik_arguments(parser) -> None:
                         help="step period (s): velocity limits for both solvers")
     parser.add_argument("--backends", nargs="+", default=PINK_BACKENDS,
                         help="Pink QP backends (those not installed are skipped)")
-    parser.add_argument("--block", type=int, default=BACK_TO_BACK_BLOCK,
+    parser.add_argument("--block", type=positive_int, default=BACK_TO_BACK_BLOCK,
                         help="steps each contender takes in a row in the second, back-to-back "
                              "race (the first interleaves single steps)")
     parser.add_argument("--json", help="also write the figures to this JSON file")
@@ -350,37 +359,28 @@ def start_note(robot, specs, targets, backends, dt) -> str:
             f"{', '.join(outcomes)}.")
 
 
-def print_timing_table(result) -> None:
-    """Timing columns of print_table only."""
-    print(f"{'contender':<24}{'median us':>10}{'p99 us':>10}{'max us':>10}{'stance/pink':>13}")
-    for name, entry in result.items():
-        if entry["median_us"] is None:
-            print(f"{name:<24} failed at timed step {entry['failed_at_step']}")
-            continue
-        ratio = entry["stance_over_pink_median"]
-        print(f"{name:<24}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
-              f"{entry['max_us']:>10.1f}{'-' if ratio is None else f'{ratio:.2f}':>13}")
-        if entry["failed_at_step"] is not None:
-            print(f"{'':<24} failed at timed step {entry['failed_at_step']}")
-
-
-def print_table(result, errors_order) -> None:
-    task_columns = "".join(f"{name:>12}" for name in errors_order)
-    print(f"{'contender':<24}{'median us':>10}{'p99 us':>10}{'max us':>10}{'iters':>7}"
-          f"{'excess rad':>12}{task_columns}{'stance/pink':>13}")
+def print_table(result, errors_order=None) -> None:
+    """One row per contender; errors_order None: the timing columns only."""
+    extra = errors_order is not None
+    task_columns = "".join(f"{name:>12}" for name in errors_order or ())
+    print(f"{'contender':<24}{'median us':>10}{'p99 us':>10}{'max us':>10}"
+          + (f"{'iters':>7}{'excess rad':>12}{task_columns}" if extra else "")
+          + f"{'stance/pink':>13}")
     for name, entry in result.items():
         if entry["median_us"] is None:
             print(f"{name:<24} failed at timed step {entry['failed_at_step']}: "
                   f"{entry['failure']}")
             continue
-        iterations = entry["mean_clamping_iterations"]
-        errors = entry["final_task_errors"]
         ratio = entry["stance_over_pink_median"]
-        print(f"{name:<24}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
-              f"{entry['max_us']:>10.1f}{'-' if iterations is None else f'{iterations:.2f}':>7}"
-              f"{entry['max_limit_excess']:>12.2e}"
-              + "".join(f"{errors[task]:>12.2e}" for task in errors_order)
-              + f"{'-' if ratio is None else f'{ratio:.2f}':>13}")
+        row = f"{name:<24}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}" \
+            f"{entry['max_us']:>10.1f}"
+        if extra:
+            iterations = entry["mean_clamping_iterations"]
+            errors = entry["final_task_errors"]
+            row += f"{'-' if iterations is None else f'{iterations:.2f}':>7}" \
+                f"{entry['max_limit_excess']:>12.2e}" \
+                + "".join(f"{errors[task]:>12.2e}" for task in errors_order)
+        print(row + f"{'-' if ratio is None else f'{ratio:.2f}':>13}")
         if entry["failed_at_step"] is not None:
             print(f"{'':<24} failed at timed step {entry['failed_at_step']}: "
                   f"{entry['failure']}")
@@ -437,7 +437,7 @@ def run_pik(args) -> int:
           "violation over the run; task errors at the final configuration (m, rad)")
     print(f"Back to back: every contender takes {args.block} steps in turn (caches warm, as "
           "in the posture generator's loop)")
-    print_timing_table(back_to_back)
+    print_table(back_to_back)
     if args.json:
         with open(args.json, "w") as output:
             json.dump({"robot": "talos", "steps": args.steps, "warmup": args.warmup,

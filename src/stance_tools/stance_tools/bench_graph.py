@@ -144,7 +144,7 @@ def _run_phases(args, velocity_scale: float) -> tuple[dict, dict]:
 
 
 def _wait_up(client, nodes, timeout: float) -> None:
-    """Return once every node runs, the PlanContacts server is ready, trajectory_node's status
+    """Return once every node runs, the PlanContacts server answers, trajectory_node's status
     and UP_TOPICS are published; raise BenchError after timeout s or if a node exits."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
