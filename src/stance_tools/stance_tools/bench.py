@@ -31,13 +31,14 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import argparse  # noqa: E402
 import importlib  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+from .cli import positive  # noqa: E402
 
 # name -> (module, add-arguments function, run function, help)
 BENCHMARKS = {
@@ -119,14 +120,6 @@ GRIPPER_MARGIN = 0.01      # rad inside the grippers' upper limit (0) at the sta
 COST_PER_LEVEL = 10.0      # Pink has no priorities: cost 10^-priority * sqrt(weight)
 
 
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
 def add_pik_arguments(parser) -> None:
     parser.add_argument("--steps", type=int, default=2000, help="timed steps per contender")
     parser.add_argument("--warmup", type=int, default=200,
@@ -142,7 +135,7 @@ def add_pik_arguments(parser) -> None:
                         help="step period (s): velocity limits for both solvers")
     parser.add_argument("--backends", nargs="+", default=PINK_BACKENDS,
                         help="Pink QP backends (those not installed are skipped)")
-    parser.add_argument("--block", type=positive_int, default=BACK_TO_BACK_BLOCK,
+    parser.add_argument("--block", type=positive(int), default=BACK_TO_BACK_BLOCK,
                         help="steps each contender takes in a row in the second, back-to-back "
                              "race (the first interleaves single steps)")
     parser.add_argument("--json", help="also write the figures to this JSON file")

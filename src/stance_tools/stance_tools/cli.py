@@ -32,6 +32,17 @@ SUBCOMMANDS = {
 }
 
 
+def positive(kind):
+    """argparse type: a value of `kind` (int, float) above 0."""
+    def parse(text):
+        value = kind(text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        return value
+    parse.__name__ = kind.__name__  # argparse names the type in its messages
+    return parse
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="stance", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -44,6 +44,8 @@ from rclpy.signals import SignalHandlerOptions
 from scipy.spatial.transform import Rotation, Slerp
 from stance_msgs.msg import SolverStatus
 
+from .cli import positive
+
 WORLD_FRAME = "world"
 STATUS_TOPIC = "/pik/status"
 PATHS_PACKAGE_DIR = "paths"
@@ -451,16 +453,6 @@ def run_keyboard(link: TargetLink, teleop: KeyboardTeleop, rate: float, fd: int,
 
 # --- Command ------------------------------------------------------------------------------------
 
-def _positive(kind):
-    def parse(text):
-        value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-        return value
-    parse.__name__ = kind.__name__  # argparse names the type in its messages
-    return parse
-
-
 def add_arguments(parser) -> None:
     parser.description = __doc__
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -468,16 +460,16 @@ def add_arguments(parser) -> None:
     parser.add_argument("--path", metavar="NAME_OR_FILE",
                         help="scripted mode: a built-in path (reach_limits, circle, ...) or a "
                              "YAML file; default: keyboard mode")
-    parser.add_argument("--loops", type=_positive(int), default=1,
+    parser.add_argument("--loops", type=positive(int), default=1,
                         help="scripted mode: path repetitions")
-    parser.add_argument("--rate", type=_positive(float),
+    parser.add_argument("--rate", type=positive(float),
                         help=f"publish rate, Hz (default {SCRIPTED_RATE:g} scripted, "
                              f"{KEYBOARD_RATE:g} keyboard republish)")
-    parser.add_argument("--step", type=_positive(float), default=0.01,
+    parser.add_argument("--step", type=positive(float), default=0.01,
                         help="keyboard translation step, m")
-    parser.add_argument("--angle-step", type=_positive(float), default=0.05,
+    parser.add_argument("--angle-step", type=positive(float), default=0.05,
                         help="keyboard rotation step, rad")
-    parser.add_argument("--timeout", type=_positive(float), default=10.0,
+    parser.add_argument("--timeout", type=positive(float), default=10.0,
                         help="s to wait for pik_node's status and the task")
 
 
