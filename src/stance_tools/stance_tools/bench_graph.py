@@ -152,9 +152,9 @@ def _wait_up(client, nodes, timeout: float) -> None:
                   if node.finished or node.restarts or node.restart_at is not None]
         if exited:
             raise BenchError(f"{', '.join(exited)} exited during start-up")
-        if all(node.running for node in nodes) and client.action_server_answers(client.client) and \
-                client.status_count() and \
-                all(client.node.count_publishers(topic) for topic in UP_TOPICS):
+        if all(node.running for node in nodes) and client.status_count() and \
+                all(client.node.count_publishers(topic) for topic in UP_TOPICS) and \
+                client.action_server_answers(client.client):   # probed once the rest is up
             return
         time.sleep(0.1)
     raise BenchError(f"the graph was not up after {timeout:g} s")

@@ -204,7 +204,7 @@ class GraphClient(BackgroundNode):
     def ready(self) -> str | None:
         """None once the action server, trajectory_node's status and every recorded topic's
         subscribers are there; else what is still missing."""
-        if not self.action_server_answers(self.client):
+        if not self.client.server_is_ready():
             return "the PlanContacts action server"
         if not self.status_count():
             return "trajectory_node's status"
@@ -212,6 +212,8 @@ class GraphClient(BackgroundNode):
             if not self.node.count_publishers(topic) or \
                     self.node.count_subscribers(topic) < count:
                 return f"{topic}: publisher and {count} subscriber(s)"
+        if not self.action_server_answers(self.client):   # probed once the rest is up
+            return "the PlanContacts action server's answer"
         return None
 
     def plan(self, scene: str, timeout: float):
