@@ -105,3 +105,11 @@ def test_bench_pik_demo_stack_moves_the_right_hand_only(tmp_path):
     result = json.loads(output.read_text())
     assert set(result["hand_offsets"]) == {"right_hand"}
     assert "left_hand" not in result["contenders"]["stance progressive"]["final_task_errors"]
+
+
+@pytest.mark.parametrize("block", ["0", "-3", "two"])
+def test_bench_pik_refuses_a_block_below_one_step(block, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        stance(["bench", "pik", "--block", block])
+    assert exit_info.value.code == 2
+    assert "argument --block" in capsys.readouterr().err
