@@ -113,3 +113,45 @@ def test_bench_pik_refuses_a_block_below_one_step(block, capsys):
         stance(["bench", "pik", "--block", block])
     assert exit_info.value.code == 2
     assert "argument --block" in capsys.readouterr().err
+
+
+class _LoggedContender:
+    """A contender that only writes its name to a shared log when it steps."""
+
+    def __init__(self, name, log):
+        self.name, self.log = name, log
+
+    def reset(self, q) -> None:
+        """Nothing to reset."""
+
+    def step(self, q):
+        self.log.append(self.name)
+        return q, 0
+
+
+@pytest.mark.parametrize("block", [1, 3])
+def test_race_spreads_each_contenders_predecessor_over_the_others(block):
+    # a step's time depends on the caches its predecessor evicted: no contender may
+    # always step after the same one (a rotated cyclic order did, most of the time)
+    from types import SimpleNamespace
+
+    import numpy as np
+    from stance_tools.bench import race
+
+    robot = SimpleNamespace(limited_q_index=[0], lower=np.array([-1.0]),
+                            upper=np.array([1.0]))
+    names = ["a", "b", "c", "d"]
+    log = []
+    records = race([_LoggedContender(name, log) for name in names], robot, np.zeros(1),
+                   600 * block, block=block)
+    assert all(len(records[name].times_ns) == 600 * block for name in names)
+    switches = [(before, after) for before, after in zip(log, log[1:]) if before != after]
+    for name in names:
+        predecessors = [before for before, after in switches if after == name]
+        shares = [predecessors.count(other) / len(predecessors) for other in names
+                  if other != name]
+        assert min(shares) > 0.25 and max(shares) < 0.45, (name, shares)
+    replay = []
+    race([_LoggedContender(name, replay) for name in names], robot, np.zeros(1),
+         600 * block, block=block)
+    assert replay == log        # the same orders in every run
