@@ -1,10 +1,13 @@
 """BackgroundNode: call() hands back what the spinning thread's call gave, an exception
 included, and forgets a request it gave up on; action_server_answers() says no while the
-server is absent or does not answer, yes once it answers, and leaves no request behind."""
+server is absent or does not answer, yes once it answers, and leaves no request behind;
+send_goal() cancels a goal whose answer did not come in time."""
+
+import time
 
 import pytest
 from conftest import wait_until
-from rclpy.action import ActionClient, ActionServer, GoalResponse
+from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.task import Future
 from stance_msgs.action import PlanContacts
 from stance_tools.background_node import BackgroundNode
@@ -73,5 +76,43 @@ def test_the_probe_says_no_until_the_server_answers_and_creates_no_goal(client):
         handle = client.call(client.action_client.send_goal_async, PlanContacts.Goal(),
                              timeout=10.0)
         assert handle is not None and not handle.accepted and server.goals == 1
+    finally:
+        server.close()
+
+
+class SlowGoalServer(BackgroundNode):
+    """A PlanContacts server that accepts every goal and, unless its cancel is asked, runs
+    it for `runs` s; silent (discovered, answering nothing) until start_spinning()."""
+
+    def __init__(self, runs=3.0):
+        super().__init__("probe_test_slow_server")
+        self.runs, self.ended = runs, []    # per goal: "canceled" or "succeeded"
+        self.server = ActionServer(self.node, PlanContacts, ACTION,
+                                   execute_callback=self._execute,
+                                   goal_callback=lambda goal: GoalResponse.ACCEPT,
+                                   cancel_callback=lambda handle: CancelResponse.ACCEPT)
+
+    def _execute(self, handle):
+        deadline = time.monotonic() + self.runs
+        while not handle.is_cancel_requested and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if handle.is_cancel_requested:
+            handle.canceled()
+            self.ended.append("canceled")
+        else:
+            handle.succeed()
+            self.ended.append("succeeded")
+        return PlanContacts.Result()
+
+
+def test_a_goal_unanswered_in_time_is_canceled_once_the_server_takes_it(client):
+    server = SlowGoalServer()
+    try:
+        wait_until(client.action_client.server_is_ready, 30, what="the server's discovery")
+        # the server takes nothing yet: the goal request waits, unanswered
+        assert client.send_goal(client.action_client, PlanContacts.Goal(), timeout=0.5) is None
+        server.start_spinning()     # accepts the goal, then takes the cancel request
+        wait_until(lambda: server.ended, 10, what="the goal to end")
+        assert server.ended == ["canceled"]
     finally:
         server.close()

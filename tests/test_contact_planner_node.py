@@ -35,6 +35,13 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def _answered(answer, timeout, what):
+    """answer, the test failed when it is None (none came within timeout s)."""
+    if answer is None:
+        pytest.fail(f"timed out after {timeout} s waiting for {what}")
+    return answer
+
+
 class PlannerClient(BackgroundNode):
     """Sends PlanContacts goals, collects feedback, cancels."""
 
@@ -45,17 +52,15 @@ class PlannerClient(BackgroundNode):
         self.start_spinning()
 
     def _call(self, function, *args, timeout=30.0, what="response", **kwargs):
-        answer = self.call(function, *args, timeout=timeout, **kwargs)
-        if answer is None:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        return answer
+        return _answered(self.call(function, *args, timeout=timeout, **kwargs), timeout, what)
 
     def send(self, goal, timeout=30.0):
         """The goal handle (accepted or not), sent once the server answers requests."""
         wait_until(lambda: self.action_server_answers(self.client), timeout,
                    what="the action server to answer")
-        return self._call(self.client.send_goal_async, goal, timeout=timeout,
-                          what="goal response", feedback_callback=self._on_feedback)
+        return _answered(self.send_goal(self.client, goal, timeout=timeout,
+                                        feedback_callback=self._on_feedback),
+                         timeout, "goal response")
 
     def _on_feedback(self, msg):
         self.feedback.append((time.monotonic(), msg.feedback))

@@ -14,7 +14,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from unique_identifier_msgs.msg import UUID
 
-PROBE_WAIT = 1.0  # s: how long action_server_answers waits for the probe's answer
+PROBE_WAIT = 1.0  # s: how long the answer probe, or a cancel after a timeout, waits
 
 
 class BackgroundNode:
@@ -55,6 +55,22 @@ class BackgroundNode:
                 return None
             time.sleep(0.02)
         return task.result().result()
+
+    def send_goal(self, client, goal, timeout: float, **kwargs):
+        """The goal handle (accepted or not) for goal, sent by client (an ActionClient of
+        this node; kwargs: send_goal_async's), None after timeout s without the server's
+        answer. The server may have accepted the goal and its answer been lost (Fast DDS
+        drops a response to a reader the server has not matched yet; action_server_answers)
+        or be late: the goal would run on unseen, holding a server that serves one goal at
+        a time. So a timeout also sends a cancel request for the goal's id, handled after
+        the goal request when the server gets both."""
+        goal_id = UUID(uuid=list(uuid.uuid4().bytes))
+        handle = self.call(client.send_goal_async, goal, goal_uuid=goal_id, timeout=timeout,
+                           **kwargs)
+        if handle is None:
+            self.call(ClientGoalHandle(client, goal_id, None).cancel_goal_async,
+                      timeout=PROBE_WAIT)
+        return handle
 
     def action_server_answers(self, client, timeout: float = PROBE_WAIT) -> bool:
         """Whether the server of `client` (an ActionClient of this node) answers a request

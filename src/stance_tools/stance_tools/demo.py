@@ -219,8 +219,7 @@ class GraphClient(BackgroundNode):
     def plan(self, scene: str, timeout: float):
         """The PlanContacts result for the scene (None when the goal is rejected or times
         out)."""
-        handle = self.call(self.client.send_goal_async, self.goal_type(scene=scene),
-                           timeout=30.0)
+        handle = self.send_goal(self.client, self.goal_type(scene=scene), timeout=30.0)
         if handle is None or not handle.accepted:
             return None
         response = self.call(handle.get_result_async, timeout=timeout)
