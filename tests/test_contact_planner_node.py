@@ -14,7 +14,7 @@ import pinocchio as pin
 import pytest
 import rclpy
 from action_msgs.msg import GoalStatus
-from conftest import wait_until
+from conftest import other_domain_id, wait_until
 from contact_planner_node.conversions import (GoalRejected, contact_from_msg, contact_msg,
                                               key_postures_from_msgs)
 from contact_planner_node.worker import PlannerProcess, descendants
@@ -262,7 +262,7 @@ def test_plan_on_flat_steps_succeeds_and_is_latched(planner, flat_steps):
 
 
 def test_sigint_during_a_plan_stops_the_node_and_its_planner_process(processes):
-    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200  # away from the module's node
+    domain = other_domain_id()  # away from the module's node
     node = processes.start("contact_planner_node", name="contact_planner_node",
                            env={"ROS_DOMAIN_ID": str(domain)})
     client = PlannerClient("sigint_client", domain_id=domain)
@@ -301,7 +301,7 @@ def test_a_goal_accepted_but_not_executing_at_shutdown_ends_without_a_wait():
     from rclpy.action import GoalResponse
     from stance.planning.planner import CANCELLED
     context = rclpy.Context()
-    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)
+    rclpy.init(context=context, domain_id=other_domain_id())
     node = ContactPlannerNode(context=context)
     try:
         goal = PlanContacts.Goal(scene="flat_steps")

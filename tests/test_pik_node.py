@@ -4,14 +4,13 @@ with a reason and changes nothing, the stack can be replaced and tasks toggled."
 import contextlib
 import copy
 import math
-import os
 import threading
 import time
 
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import NODE_START_TIMEOUT, wait_until
+from conftest import NODE_START_TIMEOUT, other_domain_id, wait_until
 from geometry_msgs.msg import Point32, PolygonStamped, Pose
 from pik_node.conversions import se3_from_pose_msg
 from pik_node.node import PikNode, fill_pose_msg
@@ -339,7 +338,7 @@ def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
      "stance/data/talos_limits.yaml; stack file: "),
 ], ids=["qp hierarchy", "mannequin with swing limits", "talos with joint groups"])
 def test_node_variants_run_and_report(tmp_path, parameters, check, logged):
-    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200  # away from the module's node
+    domain = other_domain_id()  # away from the module's node
     group = ProcessGroup(tmp_path)
     node = group.start("pik_node", "--ros-args", *parameters, name="pik_node",
                        env={"ROS_DOMAIN_ID": str(domain)})
@@ -375,7 +374,7 @@ def test_a_support_polygon_brings_the_com_back_inside(tmp_path):
     """pik_node on the QP hierarchy with feet > support > hand > posture: a polygon whose
     back edge lies ahead of the CoM brings the CoM inside at the task's gain; a polygon of
     two vertices is refused with its reason and the old polygon kept."""
-    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 120) % 200  # away from the module's node
+    domain = other_domain_id(2)  # away from the module's node
     group = ProcessGroup(tmp_path)
     node = group.start("pik_node", "--ros-args", "-p", "hierarchy:=qp", name="pik_node",
                        env={"ROS_DOMAIN_ID": str(domain)})
@@ -420,7 +419,7 @@ def test_a_support_polygon_brings_the_com_back_inside(tmp_path):
 def test_locked_joints_stay_where_the_posture_target_pulls(tmp_path):
     """pik_node with the left gripper locked: a posture target that opens both grippers
     moves the right one only (a locked joint is left to its own controller)."""
-    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 150) % 200  # away from the module's node
+    domain = other_domain_id(3)  # away from the module's node
     group = ProcessGroup(tmp_path)
     node = group.start("pik_node", "--ros-args", "-p", "locked_joints:=[gripper_left_joint]",
                        name="pik_node", env={"ROS_DOMAIN_ID": str(domain)})
@@ -559,7 +558,7 @@ def test_bad_runtime_strategy_is_refused_and_the_old_one_kept(pik):
 def local_pik_node():
     """An in-process pik_node (default robot, its loop not started) in another domain."""
     context = rclpy.Context()
-    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)
+    rclpy.init(context=context, domain_id=other_domain_id())
     try:
         node = PikNode(context=context)
         try:
@@ -661,7 +660,7 @@ def test_a_step_is_stamped_after_the_inputs_it_reflects():
     (default robot) in another DDS domain, its loop not started; the lock held 50 ms by
     another thread."""
     context = rclpy.Context()
-    rclpy.init(context=context, domain_id=(int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)
+    rclpy.init(context=context, domain_id=other_domain_id())
     try:
         node = PikNode(context=context)
         published = []

@@ -5,7 +5,6 @@ kept; a plan is scheduled ahead; in the graph, a late release followed by a new 
 never switches on; bad parameters end the node with exit code 1."""
 
 import math
-import os
 import threading
 import time
 from pathlib import Path
@@ -13,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
-from conftest import NODE_START_TIMEOUT, wait_until
+from conftest import NODE_START_TIMEOUT, other_domain_id, wait_until
 from contact_planner_node.conversions import contact_msg
 from helpers.probe import RELIABLE, BackgroundNode
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -208,7 +207,7 @@ def test_bad_stance_is_rejected_and_the_state_kept(gate, scene, case):
 
 
 def test_plan_is_scheduled_and_unknown_surfaces_are_rejected_with_a_scene(processes, scene):
-    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200  # away from the module's node
+    domain = other_domain_id()  # away from the module's node
     node = processes.start("stabilizer_gate_node", "--ros-args", "-p", "scene:=chair_table",
                            name="stabilizer_gate_node", env={"ROS_DOMAIN_ID": str(domain)})
     probe = GateProbe("scene_gate_probe", domain)
@@ -259,7 +258,7 @@ def test_a_late_release_then_a_new_contact_never_switches_on_in_the_graph(proces
     events = StabilizerGate(chair).schedule([stance.contacts for stance in short.stances])
     assert [(e.stance_index, e.at, e.enabled) for e in events] == \
         [(1, END, True), (2, START, False)]
-    domain = (int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200
+    domain = other_domain_id()
     env = {"ROS_DOMAIN_ID": str(domain)}
     processes.start("pik_node", name="pik_node", env=env)
     processes.start("trajectory_node", "--ros-args", "-p", "contact_gain:=0.02", "-p",

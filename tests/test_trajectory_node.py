@@ -18,7 +18,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
-from conftest import NODE_START_TIMEOUT, wait_until
+from conftest import NODE_START_TIMEOUT, other_domain_id, wait_until
 from contact_planner_node.conversions import stance_plan_msg
 from geometry_msgs.msg import PoseStamped
 from helpers.probe import RELIABLE, BackgroundNode
@@ -402,7 +402,7 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
     assert sum(bool(targets) for targets in created.values()) == 2
     data = robot.model.createData()
     coms = {k: witness_com(robot.model, data, short.stances[k]) for k in created}
-    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    domain = {"ROS_DOMAIN_ID": str(other_domain_id())}
     processes.start("pik_node", name="pik_node", env=domain)
     processes.start("trajectory_node", "--ros-args", "-p", "contact_gain:=0.02", "-p",
                     "com_gain:=0.02", "-p", f"samples_per_transition:={STEPS}",
@@ -486,7 +486,7 @@ def test_a_starved_trajectory_node_slows_the_motion_instead_of_skipping_it(proce
     largest = {sole: max(np.linalg.norm(sole_positions(t + advance)[sole]
                                         - sole_positions(t)[sole]) for t in grid)
                for sole in soles}
-    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    domain = {"ROS_DOMAIN_ID": str(other_domain_id())}
     processes.start("pik_node", name="pik_node", env=domain)
     node = processes.start("trajectory_node", "--ros-args", "-p",
                            f"samples_per_transition:={STEPS}", name="trajectory_node",
@@ -520,7 +520,7 @@ def test_a_stance_not_reached_in_time_stops_the_execution_and_says_what_is_late(
     and pik_node goes on publishing. Its own pair of nodes in another DDS domain."""
     robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:3])
-    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    domain = {"ROS_DOMAIN_ID": str(other_domain_id())}
     pik = processes.start("pik_node", name="pik_node", env=domain)
     node = processes.start("trajectory_node", "--ros-args", "-p", "com_gain:=0.02", "-p",
                            "arrival_timeout:=0.0", "-p", f"samples_per_transition:={STEPS}",
@@ -564,7 +564,7 @@ def test_time_optimal_timing_is_the_library_one_and_sigint_stops_cleanly(process
     take the plan too)."""
     robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:3])
-    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    domain = {"ROS_DOMAIN_ID": str(other_domain_id())}
     processes.start("pik_node", name="pik_node", env=domain)
     node = processes.start("trajectory_node", "--ros-args", "-p", "timing:=time_optimal",
                            "-p", f"samples_per_transition:={STEPS}", name="trajectory_node",
@@ -616,7 +616,7 @@ def test_a_plan_latched_before_start_is_executed_only_when_asked(processes,
     plan too.)"""
     robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:3])
-    domain = {"ROS_DOMAIN_ID": str((int(os.environ["ROS_DOMAIN_ID"]) + 100) % 200)}
+    domain = {"ROS_DOMAIN_ID": str(other_domain_id())}
     probe = TrajectoryProbe("latched_probe", int(domain["ROS_DOMAIN_ID"]))
     try:
         probe.plan_pub.publish(plan_msg(robot, scene, short))   # latched, nobody listens yet
