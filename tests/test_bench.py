@@ -146,6 +146,7 @@ def test_race_spreads_each_contenders_predecessor_over_the_others(block):
                    600 * block, block=block)
     assert all(len(records[name].times_ns) == 600 * block for name in names)
     switches = [(before, after) for before, after in zip(log, log[1:]) if before != after]
+    assert len(switches) == len(log) // block - 1   # never the same contender twice in a row
     for name in names:
         predecessors = [before for before, after in switches if after == name]
         shares = [predecessors.count(other) / len(predecessors) for other in names

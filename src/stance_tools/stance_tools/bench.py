@@ -257,23 +257,30 @@ def limit_excess(robot, q) -> float:
 
 def race(contenders, robot, start, steps, states=None, block=1, seed=0) -> dict:
     """Every contender takes steps k..k+block-1 before any takes the next block, in an order
-    drawn anew for each block (random.Random(seed): the same orders in every run), so each
-    contender follows every other about equally often. A step's time depends on how much
-    of the caches its predecessor evicted: a fixed cyclic order (rotated per block) kept
-    each contender's predecessor, Stance's progressive step always after a Pink step and
-    Pink's quadprog step always after Stance's lightest one. block 1 (interleaved): each
-    step runs after another contender's, its caches cold, as in a node whose loop does
-    other work between steps; a larger block (back to back): caches warm, as in the
-    posture generator's loop. Pink errors mark a contender failed. states: one
-    configuration per step; every contender then takes step k from states[k] instead of
-    from its own last configuration (open loop, the same inputs for all)."""
+    drawn anew for each block (random.Random(seed): the same orders in every run) and never
+    starting with the contender that ended the block before, so each contender follows
+    every other about equally often. A step's time depends on how much of the caches its
+    predecessor evicted: a fixed cyclic order (rotated per block) kept each contender's
+    predecessor, Stance's progressive step always after a Pink step and Pink's quadprog
+    step always after Stance's lightest one. block 1 (interleaved): each step runs after
+    another contender's, its caches cold, as in a node whose loop does other work between
+    steps; a larger block (back to back): caches warm, as in the posture generator's loop.
+    Pink errors mark a contender failed: it takes no more turns. states: one configuration
+    per step; every contender then takes step k from states[k] instead of from its own last
+    configuration (open loop, the same inputs for all)."""
     records = {contender.name: Record() for contender in contenders}
     configurations = {contender.name: start for contender in contenders}
     for contender in contenders:
         contender.reset(start)
-    orders = random.Random(seed)
+    orders, last = random.Random(seed), None
     for first in range(0, steps, block):
-        for contender in orders.sample(contenders, len(contenders)):
+        running = [contender for contender in contenders
+                   if records[contender.name].failed_at is None]
+        order = orders.sample(running, len(running))
+        while len(running) > 1 and order[0] is last:
+            order = orders.sample(running, len(running))
+        last = order[-1] if order else None
+        for contender in order:
             for step in range(first, min(first + block, steps)):
                 q = configurations[contender.name] if states is None else states[step]
                 q = _timed_step(contender, records[contender.name], robot, step, q)
