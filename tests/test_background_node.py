@@ -81,21 +81,31 @@ def test_the_probe_says_no_until_the_server_answers_and_creates_no_goal(client):
 
 
 class SlowGoalServer(BackgroundNode):
-    """A PlanContacts server that accepts every goal and, unless its cancel is asked, runs
-    it for `runs` s; silent (discovered, answering nothing) until start_spinning()."""
+    """A PlanContacts server that answers a goal request only after `answers_after` s (its
+    goal callback blocks the node), accepting it, and then runs the goal for `runs` s
+    unless its cancel is asked; the run waits on a timer, so the node takes a cancel
+    request meanwhile."""
 
-    def __init__(self, runs=3.0):
+    def __init__(self, answers_after=1.5, runs=3.0):
         super().__init__("probe_test_slow_server")
-        self.runs, self.ended = runs, []    # per goal: "canceled" or "succeeded"
+        self.answers_after, self.runs = answers_after, runs
+        self.ended = []                     # per goal: "canceled" or "succeeded"
         self.server = ActionServer(self.node, PlanContacts, ACTION,
                                    execute_callback=self._execute,
-                                   goal_callback=lambda goal: GoalResponse.ACCEPT,
+                                   goal_callback=self._on_goal,
                                    cancel_callback=lambda handle: CancelResponse.ACCEPT)
 
-    def _execute(self, handle):
-        deadline = time.monotonic() + self.runs
-        while not handle.is_cancel_requested and time.monotonic() < deadline:
-            time.sleep(0.05)
+    def _on_goal(self, goal):
+        time.sleep(self.answers_after)
+        return GoalResponse.ACCEPT
+
+    async def _execute(self, handle):
+        deadline, over = time.monotonic() + self.runs, Future()
+        timer = self.node.create_timer(0.05, lambda: over.done() or (
+            (handle.is_cancel_requested or time.monotonic() > deadline) and
+            over.set_result(None)))
+        await over
+        self.node.destroy_timer(timer)
         if handle.is_cancel_requested:
             handle.canceled()
             self.ended.append("canceled")
@@ -105,13 +115,15 @@ class SlowGoalServer(BackgroundNode):
         return PlanContacts.Result()
 
 
-def test_a_goal_unanswered_in_time_is_canceled_once_the_server_takes_it(client):
+def test_a_goal_answered_too_late_is_canceled(client):
     server = SlowGoalServer()
+    server.start_spinning()
     try:
-        wait_until(client.action_client.server_is_ready, 30, what="the server's discovery")
-        # the server takes nothing yet: the goal request waits, unanswered
+        wait_until(lambda: client.action_server_answers(client.action_client), 30,
+                   what="the server to answer")
+        # the client gives up after 0.5 s; the server accepts the goal at 1.5 s, then takes
+        # the cancel request that waited meanwhile
         assert client.send_goal(client.action_client, PlanContacts.Goal(), timeout=0.5) is None
-        server.start_spinning()     # accepts the goal, then takes the cancel request
         wait_until(lambda: server.ended, 10, what="the goal to end")
         assert server.ended == ["canceled"]
     finally:

@@ -58,12 +58,16 @@ class BackgroundNode:
 
     def send_goal(self, client, goal, timeout: float, **kwargs):
         """The goal handle (accepted or not) for goal, sent by client (an ActionClient of
-        this node; kwargs: send_goal_async's), None after timeout s without the server's
-        answer. The server may have accepted the goal and its answer been lost (Fast DDS
-        drops a response to a reader the server has not matched yet; action_server_answers)
-        or be late: the goal would run on unseen, holding a server that serves one goal at
-        a time. So a timeout also sends a cancel request for the goal's id, handled after
-        the goal request when the server gets both."""
+        this node; kwargs: send_goal_async's but goal_uuid), None after timeout s without
+        the server's answer. The server may have accepted the goal and its answer been lost
+        (Fast DDS drops a response to a reader the server has not matched yet;
+        action_server_answers) or be late: the goal would run on unseen, holding a server
+        that serves one goal at a time. So a timeout also sends a cancel request for the
+        goal's id. It cancels a goal the server has taken (the goal and cancel requests
+        travel apart, but a server taking both at once handles the goal first); a goal
+        request the server has not taken yet, after timeout s, is not canceled (the
+        answer, "unknown goal", is not awaited beyond PROBE_WAIT s). rclpy logs a late
+        answer as "Ignoring unexpected goal response"."""
         goal_id = UUID(uuid=list(uuid.uuid4().bytes))
         handle = self.call(client.send_goal_async, goal, goal_uuid=goal_id, timeout=timeout,
                            **kwargs)

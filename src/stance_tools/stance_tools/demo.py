@@ -28,7 +28,7 @@ import threading
 import time
 from pathlib import Path
 
-from .background_node import BackgroundNode
+from .background_node import PROBE_WAIT, BackgroundNode
 from .processes import ProcessGroup, terminate_as_interrupt
 
 DEFAULT_OUTPUT = Path("out") / "demo"
@@ -218,12 +218,15 @@ class GraphClient(BackgroundNode):
 
     def plan(self, scene: str, timeout: float):
         """The PlanContacts result for the scene (None when the goal is rejected or times
-        out)."""
+        out; a goal still running after timeout s is canceled, so it frees the planner)."""
         handle = self.send_goal(self.client, self.goal_type(scene=scene), timeout=30.0)
         if handle is None or not handle.accepted:
             return None
         response = self.call(handle.get_result_async, timeout=timeout)
-        return None if response is None else response.result
+        if response is None:
+            self.call(handle.cancel_goal_async, timeout=PROBE_WAIT)
+            return None
+        return response.result
 
     def wait_status(self, since: int, states, timeout: float) -> str | None:
         """The first status after the first `since` ones whose state is in `states`; None
