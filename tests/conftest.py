@@ -14,18 +14,18 @@ from stance_tools.processes import ProcessGroup
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-# One DDS domain per test session (and per xdist worker), so parallel runs never cross-talk:
-# 1-58, never the default one (0).
-DOMAIN_SPACING = 58
+# One DDS domain per test session (and per xdist worker), 1-25, never the default one (0):
+# two runs at once cross-talk only when they draw the same one. Domains stay within 0-101,
+# whose DDS ports lie below Linux's ephemeral port range (ROS 2 docs, "About Domain ID").
+DOMAIN_SPACING = 25
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").lstrip("gw") or "0"
 os.environ["ROS_DOMAIN_ID"] = str(1 + (os.getpid() * 7 + int(_worker)) % DOMAIN_SPACING)
 
 
 def other_domain_id(index: int = 1) -> int:
     """Another domain of this session (index 1, 2 or 3) for a test whose nodes must not meet
-    the module's, or those of a test before it still shutting down: the session's domain +
-    58 index, never a session's own (1-58) nor the default (0), at most 232 (Fast DDS's
-    highest)."""
+    the module's, or those of a test before it still shutting down: the session's domain
+    plus 25 times index, at most 100, never a session's own (1-25) nor the default (0)."""
     if index not in (1, 2, 3):
         raise ValueError(f"other_domain_id: index {index} is not 1, 2 or 3")
     return int(os.environ["ROS_DOMAIN_ID"]) + DOMAIN_SPACING * index
