@@ -5,7 +5,8 @@ clamping (393 vs 455 on its mannequin), the twist DoF of the knee handing the mo
 the flexion earlier. Here both strategies need the same number of iterations on both robots
 (107 on the mannequin, 111 on Talos): the reach is paced by the per-step task gains, and the
 right knee's DoFs never enter their damping zones (experiments.thorn). So only "no more
-iterations than clamping" is asserted; the strict gain did not reproduce.
+iterations than clamping" is asserted; the strict gain did not reproduce, and at a larger
+lambda progressive clamping needs a few per cent more iterations (the module's sweep).
 """
 
 import numpy as np
@@ -53,7 +54,21 @@ def test_right_leg_is_damped_progressively_and_clamped_discretely(robot_runs):
 
 def test_reproduce_writes_figures_and_tables(tmp_path, robot_runs, monkeypatch):
     robot_name, runs = robot_runs
-    monkeypatch.setattr(thorn, "run_thorn", lambda robot_name, max_steps: runs)
+    monkeypatch.setattr(thorn, "run_thorn", lambda robot_name, max_steps, **settings: runs)
     paths = thorn.reproduce(tmp_path, robot_name)
     assert {path.name for path in paths} == {
-        "thorn_errors.png", "thorn_damping.png", "thorn.md", "thorn.json"}
+        "thorn_errors.png", "thorn_damping.png", "thorn.md", "thorn.json",
+        "thorn_sweep.md", "thorn_sweep.json"}
+
+
+def test_the_sweep_reruns_the_default_and_a_larger_lambda_slows_both(robot_runs):
+    """The sweep's row at the experiment's settings is the experiment; a larger lambda makes
+    both strategies slower (the paper: a large damping factor makes convergence too long)."""
+    robot_name, runs = robot_runs
+    rows = thorn.sweep(robot_name, dampings=(thorn.DAMPING, 0.5), gains=(thorn.REACH_GAIN,))
+    assert [(row["damping"], row["reach_gain"]) for row in rows] == [
+        (thorn.DAMPING, thorn.REACH_GAIN), (0.5, thorn.REACH_GAIN)]
+    default, damped = rows
+    for name, run in runs.items():
+        assert default[f"{name}_iterations"] == run.first_step_below(thorn.ERROR_THRESHOLD)
+        assert damped[f"{name}_iterations"] > 2 * default[f"{name}_iterations"]

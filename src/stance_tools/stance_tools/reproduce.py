@@ -4,7 +4,8 @@ numbers (markdown and JSON) into OUTDIR.
 
 - chain: planar 7-joint chain, GPM vs clamping vs progressive clamping (Figs. 9-10).
 - thorn: humanoid reaching its right foot behind its back, progressive clamping vs clamping
-  (Figs. 11-12) on Talos or on the mannequin of stance.models (--robot).
+  (Figs. 11-12) on Talos or on the mannequin of stance.models (--robot), then both again
+  over a sweep of lambda and reach gain (thorn_sweep.md).
 """
 
 from __future__ import annotations
