@@ -68,7 +68,7 @@ class BackgroundNode:
         request the server has not taken yet, after timeout s, is not canceled (the
         answer, "unknown goal", is not awaited beyond PROBE_WAIT s). rclpy logs a late
         answer as "Ignoring unexpected goal response"."""
-        goal_id = UUID(uuid=list(uuid.uuid4().bytes))
+        goal_id = _random_goal_id()
         handle = self.call(client.send_goal_async, goal, goal_uuid=goal_id, timeout=timeout,
                            **kwargs)
         if handle is None:
@@ -89,7 +89,7 @@ class BackgroundNode:
         the order they were announced (one reliable builtin writer announces them)."""
         if not client.server_is_ready():
             return False
-        unknown_goal = ClientGoalHandle(client, UUID(uuid=list(uuid.uuid4().bytes)), None)
+        unknown_goal = ClientGoalHandle(client, _random_goal_id(), None)
         return self.call(unknown_goal.get_result_async, timeout=timeout) is not None
 
     def close(self):
@@ -110,3 +110,8 @@ def _future_of(function, args, kwargs) -> Future:
         failed = Future()
         failed.set_exception(error)
         return failed
+
+
+def _random_goal_id() -> UUID:
+    """A fresh random goal id (unique_identifier_msgs/UUID)."""
+    return UUID(uuid=list(uuid.uuid4().bytes))

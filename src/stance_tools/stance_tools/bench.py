@@ -291,12 +291,10 @@ def race(contenders, robot, start, steps, states=None, block=1, seed=0) -> dict:
 
 
 def _timed_step(contender, record, robot, step, q):
-    """The contender's configuration after one timed step from q, recorded; None once it has
-    failed (a Pink error)."""
+    """The contender's configuration after one timed step from q, recorded; None when the
+    step fails (a Pink error, recorded as the contender's failure)."""
     from pink.exceptions import PinkError
 
-    if record.failed_at is not None:
-        return None
     begin = time.perf_counter_ns()
     try:
         q, iterations = contender.step(q)

@@ -35,11 +35,12 @@ iterations: the reach gain paces the error, and the reach never waits on the kne
 
 The paper gives neither its damping factor lambda nor its step size, so `reproduce` also
 sweeps both (lambda 0.05, 0.2, 0.5; reach gain 0.03, 0.2, 1.0, each task's step capped at
-0.05 m or rad, as the paper limits a constraint's variation): the strategies tie at lambda 0.05; at 0.2 and 0.5 progressive clamping needs 2-9 %
-more iterations than clamping on the mannequin (371 against 342 at lambda 0.5, gain 0.03),
-and on Talos 1-2 % more, except 4 % fewer at lambda 0.5, gain 0.03 (342 against 356). Its
-damping slows the joints in their zones, which the others make up for less well under a
-larger lambda; the paper's hand-over from knee twist to flexion does not show here.
+0.05 m or rad, as the paper limits a constraint's variation): the strategies tie at lambda
+0.05; at 0.2 and 0.5 progressive clamping needs 2-9 % more iterations than clamping on the
+mannequin (371 against 342 at lambda 0.5, gain 0.03), and on Talos 1-2 % more, except 4 %
+fewer at lambda 0.5, gain 0.03 (342 against 356). Its damping slows the joints in their
+zones, which the others make up for less well under a larger lambda; the paper's hand-over
+from knee twist to flexion does not show here.
 """
 
 from __future__ import annotations
