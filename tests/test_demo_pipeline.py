@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from stance_tools import check_run
 from stance_tools.bag import read_messages, topic_counts
-from stance_tools.demo import PIPELINE_TOPICS
+from stance_tools.demo import PIPELINE_TOPICS, recorder_failure
 
 PLOTS = ("contacts.png", "stabilizer.png", "joints.png", "com.png", "damping.png",
          "errors.png", "plan.png")
@@ -110,3 +110,10 @@ def test_sigterm_stops_the_demo_and_every_process_it_started(tmp_path):
         for pid in started:   # each child leads its own process group
             if alive(pid):
                 os.killpg(pid, signal.SIGKILL)
+
+
+def test_a_killed_recorder_is_not_reported_as_losing_messages():
+    # a recorder that had to be killed left its bag unclosed: say so, not "lost messages"
+    assert recorder_failure(0) is None
+    assert "killed (signal 9)" in recorder_failure(-signal.SIGKILL)
+    assert "lost or unwritten" in recorder_failure(1)

@@ -117,11 +117,11 @@ def run_pik(args) -> int:
         if teleop.wait() != 0:
             return _fail(group, f"teleop failed: {teleop.log_path.read_text()[-2000:]}")
         time.sleep(0.5)
-        recorder_code = group.stop(recorder)
+        failure = recorder_failure(group.stop(recorder))
         print(recorder.log_path.read_text().strip())
         group.stop(pik)
-        if recorder_code != 0:
-            return _fail(group, "the recorder reported lost or unwritten messages")
+        if failure:
+            return _fail(group, failure)
     finally:
         group.stop_all()
     print(f"\nbag: {bag}\nplots:")
@@ -353,10 +353,20 @@ def _execute(group, scene: str, trajectory: dict, planner: dict, bag: Path,
         time.sleep(SETTLE)
     finally:
         client.close()
-    if group.stop(recorder) != 0:
-        return f"the recorder reported lost or unwritten messages: " \
-               f"{recorder.log_path.read_text()[-1500:]}"
-    return None
+    failure = recorder_failure(group.stop(recorder))
+    return failure and f"{failure}: {recorder.log_path.read_text()[-1500:]}"
+
+
+def recorder_failure(exit_code: int) -> str | None:
+    """What the recorder's exit code says went wrong (None: a complete recording). A
+    negative code is the signal that ended it: it had not exited within the stop's SIGINT
+    timeout, so its bag is not closed (its log names the last stage of its stop)."""
+    if exit_code == 0:
+        return None
+    if exit_code < 0:
+        return (f"the recorder did not exit after SIGINT and was killed (signal "
+                f"{-exit_code}); its bag is not closed")
+    return "the recorder reported lost or unwritten messages"
 
 
 def _report(output: Path, scene: str, bag: Path, record: PipelineRun, began: float) -> int:

@@ -392,6 +392,8 @@ class Recorder:
     def stop(self):
         """Take what the readers still hold, unsubscribe, write everything queued, close
         the bag; returns its metadata."""
+        log = self._node.get_logger()
+        log.info("stopping: taking what the readers hold")
         deadline = time.monotonic() + STOP_DRAIN_SECONDS
         for counters in self.topics.values():
             while not self._take_held(counters):
@@ -399,9 +401,12 @@ class Recorder:
                     counters.unread_at_exit = True
                     break
             self._node.destroy_subscription(counters.subscription)
+        log.info(f"stopping: writing the {self._queue.qsize()} queued messages")
         self._queue.put(None)
         self._writer.join()
-        return self._bag.close()
+        metadata = self._bag.close()
+        log.info("stopping: bag closed")
+        return metadata
 
 
 def subscription_qos(publishers):
