@@ -16,9 +16,12 @@ help:
 	@echo "make demo   set up, then plan and execute a multi-contact motion on Talos (bag, plots, checks)"
 	@echo "make test   set up, then run every test"
 	@echo "make bench  set up, then run the benchmarks"
-	@echo "make setup  only build .venv and the colcon workspace"
+	@echo "make setup  build .venv and the colcon workspace, compile pik_node's kernels"
 
+# numba compiles pik_node's kernels in about a minute, then loads them from its disk cache
+# (keyed on the library's sources) in under a second: compile them here, not at a node's start.
 setup: $(BUILD_STAMP)
+	$(ENV) stance compile
 
 $(VENV_STAMP): requirements.txt
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)

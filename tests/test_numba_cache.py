@@ -3,6 +3,8 @@ edit to the file of the function it compiled, not to the files of the compiled f
 that function calls, and would run stale kernels from its cache."""
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numba
@@ -34,3 +36,29 @@ def test_directories_of_other_sources_are_removed(tmp_path, monkeypatch):
         assert not (tmp_path / "numba-0000000000000000").exists()
     finally:
         numba.config.CACHE_DIR = previous
+
+
+# In a fresh process after `stance compile`: pik_node's warm-up, then the number of
+# signatures the library's kernels compiled instead of loading from the cache.
+FRESH_PROCESS_MISSES = """
+import numba.core.registry
+import stance
+from stance_tools.warm_cache import warm
+warm("talos", "svd")
+kernels = [value for module in list(__import__("sys").modules.values())
+           if (getattr(module, "__name__", "") or "").startswith("stance.")
+           for value in vars(module).values()
+           if isinstance(value, numba.core.registry.CPUDispatcher)]
+print(sum(sum(kernel.stats.cache_misses.values()) for kernel in kernels), len(kernels))
+"""
+
+
+def test_stance_compile_leaves_nothing_for_pik_node_to_compile():
+    # make setup runs `stance compile`; run it again so the test holds on its own
+    subprocess.run([sys.executable, "-m", "stance_tools.cli", "compile"], check=True,
+                   capture_output=True, timeout=600)
+    result = subprocess.run([sys.executable, "-c", FRESH_PROCESS_MISSES], check=True,
+                            capture_output=True, text=True, timeout=120)
+    misses, kernels = map(int, result.stdout.split()[-2:])
+    assert kernels > 20   # the count sees the library's kernels
+    assert misses == 0

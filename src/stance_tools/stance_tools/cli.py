@@ -27,6 +27,8 @@ SUBCOMMANDS = {
                   "check an executed plan's bag: contacts, limits, C1, balance, stabilizer"),
     "graph": ("stance_tools.graph",
               "run the node graph: one process per node, crashed nodes restarted"),
+    "compile": ("stance_tools.warm_cache",
+                "fill numba's disk cache with pik_node's kernels (make setup runs it)"),
     "param": ("stance_tools.param",
               "set a running node's parameter (e.g. pik_node's strategy) without ros2"),
 }
