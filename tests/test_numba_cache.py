@@ -41,11 +41,11 @@ def test_directories_of_other_sources_are_removed(tmp_path, monkeypatch):
 # In a fresh process after `stance compile`: pik_node's warm-up, then the number of
 # signatures the library's kernels compiled instead of loading from the cache.
 FRESH_PROCESS_MISSES = """
+import sys
 import numba.core.registry
-import stance
 from stance_tools.warm_cache import warm
 warm("talos", "svd")
-kernels = [value for module in list(__import__("sys").modules.values())
+kernels = [value for module in list(sys.modules.values())
            if (getattr(module, "__name__", "") or "").startswith("stance.")
            for value in vars(module).values()
            if isinstance(value, numba.core.registry.CPUDispatcher)]

@@ -4,7 +4,7 @@ Compiling the library's kernels for one robot's limit models takes over a minute
 machine; a node that finds them cached starts in about a second. `make setup` runs this
 once per source version (the cache is keyed on the library's sources,
 stance.numba_cache), so neither the first `ros2 run pik_node` nor the demo's start-up
-timeout pays for the compilation. Loading an already filled cache takes a few seconds.
+timeout pays for the compilation. With the cache filled, the command takes about a second.
 """
 
 import time
@@ -14,7 +14,9 @@ from stance.pik import HIERARCHIES, demo_stack_file
 from stance.stack import parse_stack_yaml
 from stance.swing import load_limit_file
 
-NODE_RATE = 500.0   # Hz: pik_node's default rate, whose dt turns the velocity limits on
+# Hz: pik_node's default rate. The kernels compiled depend on dt being set (velocity limits
+# on), not on its value.
+NODE_RATE = 500.0
 
 
 def add_arguments(parser) -> None:
