@@ -38,13 +38,15 @@ def test_directories_of_other_sources_are_removed(tmp_path, monkeypatch):
         numba.config.CACHE_DIR = previous
 
 
-# In a fresh process after `stance compile`: pik_node's warm-up, then the number of
-# signatures the library's kernels compiled instead of loading from the cache.
+# In a fresh process after `stance compile`: pik_node's warm-up in every configuration the
+# command compiles by default, then the number of signatures the library's kernels compiled
+# instead of loading from the cache.
 FRESH_PROCESS_MISSES = """
 import sys
 import numba.core.registry
-from stance_tools.warm_cache import warm
-warm("talos", "svd")
+from stance_tools.warm_cache import configurations, warm
+for robot_name, limits_file, hierarchy in configurations():
+    warm(robot_name, hierarchy, limits_file)
 kernels = [value for module in list(sys.modules.values())
            if (getattr(module, "__name__", "") or "").startswith("stance.")
            for value in vars(module).values()
@@ -62,3 +64,12 @@ def test_stance_compile_leaves_nothing_for_pik_node_to_compile():
     misses, kernels = map(int, result.stdout.split()[-2:])
     assert kernels > 20   # the count sees the library's kernels
     assert misses == 0
+
+
+def test_stance_compile_covers_the_configurations_talos_ships():
+    from stance_tools.warm_cache import configurations, shipped_limit_files
+
+    # Talos: no limit file of its own, its hips and shoulders in the shipped `talos` file
+    assert configurations() == [("talos", limits, hierarchy) for limits in ("", "talos")
+                                for hierarchy in ("svd", "qp")]
+    assert shipped_limit_files("mannequin") == [""]   # its own file is the shipped one
