@@ -14,3 +14,8 @@ def test_help_prints_usage_and_exits_zero(argv, capsys):
         stance(argv)
     assert exit_info.value.code == 0
     assert capsys.readouterr().out.startswith(f"usage: stance {' '.join(argv[:-1])}")
+
+
+def test_the_command_list_names_every_benchmark():
+    _, listed = SUBCOMMANDS["bench"]
+    assert listed.split(": ", 1)[1].split(", ") == list(BENCHMARKS)

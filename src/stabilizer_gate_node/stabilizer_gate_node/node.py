@@ -24,7 +24,8 @@ Topics (QoS in parentheses):
   sub  /trajectory/active_stance  stance_msgs/ContactStance (reliable, keep last 10)
   sub  /contact_planner/plan      stance_msgs/StancePlan (reliable, transient local, depth 1)
   pub  /stabilizer/state          stance_msgs/StabilizerState at `rate` Hz from the first
-                                  accepted stance on (reliable, keep last 10)
+                                  accepted stance on (reliable, keep last 1000, as
+                                  pik_node's per-step streams)
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ SUBCOMMANDS = {
     "demo": ("stance_tools.demo", "the whole graph on a scene (plan, execute, record, check, "
              "report); --scenario pik: the PIK demo"),
     "bench": ("stance_tools.bench",
-              "benchmarks: pik, levels, groups, node, plan, interpolate, graph"),
+              "benchmarks: pik, levels, groups, support, node, interpolate, plan, graph"),
     "reproduce": ("stance_tools.reproduce",
                   "reproduce the progressive clamping paper's experiments"),
     "plan": ("stance_tools.plan", "plan contact stances for a scene (best-first, no ROS)"),
