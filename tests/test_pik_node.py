@@ -130,8 +130,8 @@ def test_bad_pose_target_is_rejected_and_changes_nothing(pik, case):
     assert_alive(node, probe)
 
 
-@pytest.mark.parametrize("case", ["nan com", "huge com", "unknown joint", "length mismatch",
-                                  "nan joint", "outside limits"])
+@pytest.mark.parametrize("case", ["nan com", "huge com", "unknown joint", "world joint",
+                                  "length mismatch", "nan joint", "outside limits"])
 def test_bad_com_and_posture_targets_are_rejected(pik, case):
     node, probe = pik
     before = fresh_status(probe)
@@ -141,6 +141,8 @@ def test_bad_com_and_posture_targets_are_rejected(pik, case):
         task, msg = "com", point_target(0.0, -1e308, 0.8)
     else:
         names, positions = {"unknown joint": (["no_such_joint"], [0.1]),
+                            # Pinocchio's joint 0: its idx_q -1 once set head_2_joint's target
+                            "world joint": (["universe"], [100.0]),
                             "length mismatch": (["arm_right_4_joint"], [0.1, 0.2]),
                             "nan joint": (["arm_right_4_joint"], [float("nan")]),
                             # limits [-2.356, 0]: rejected as /pik/set_configuration does
@@ -214,6 +216,9 @@ def malformed_stacks():
         "axis not for kind": (edited(2, axis_mask=TaskSpec.AXIS_RX), "axis"),
         "empty": ([], "empty"),
         "bad name": (edited(3, name="right hand"), "name"),
+        # the name check once let a trailing newline through, and the topic then failed
+        "newline name": (edited(3, name="right_hand\n"), "name"),
+        "too long name": (edited(3, name="a" * 250), "characters"),
         # Pinocchio's frame 0, FIXED_JOINT: nothing moves it, its Jacobian is zero
         "universe frame": (edited(3, frame="universe"),
                            "frame 'universe' is fixed in the world"),
@@ -373,7 +378,8 @@ def sole_polygon(status, shift_x=0.0):
 def test_a_support_polygon_brings_the_com_back_inside(tmp_path):
     """pik_node on the QP hierarchy with feet > support > hand > posture: a polygon whose
     back edge lies ahead of the CoM brings the CoM inside at the task's gain; a polygon of
-    two vertices is refused with its reason and the old polygon kept."""
+    two vertices is refused with its reason and the old polygon kept, and so is the polygon
+    when the stack is sent again."""
     domain = other_domain_id(2)  # away from the module's node
     group = ProcessGroup(tmp_path)
     node = group.start("pik_node", "--ros-args", "-p", "hierarchy:=qp", name="pik_node",
@@ -411,6 +417,12 @@ def test_a_support_polygon_brings_the_com_back_inside(tmp_path):
                    what="the two-vertex polygon refused")
         assert ">= 3 xy vertices" in probe.latest_status().last_rejection
         assert task_status(fresh_status(probe), "balance").error_norm < 1e-4
+        # the same stack again: every task keeps its target, the support task its polygon
+        response = probe.call(probe.set_stack_client, SetStack.Request(tasks=tasks))
+        assert response.success, response.message
+        assert any(name.startswith("balance edge")
+                   for name in fresh_status(probe).binding_constraints)
+        assert node.poll() is None
     finally:
         probe.close()
         group.stop_all()

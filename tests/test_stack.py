@@ -11,6 +11,7 @@ from stance.pik import PIKSolver, default_stack_specs
 from stance.robot import Robot
 from stance.stack import (FRAME_KINDS, MAX_PRIORITY, StackError, TaskSpec, parse_stack_yaml,
                           validate_stack)
+from stance.tasks import TargetError
 
 FRAMES = {"left_sole_link", "gripper_right_base_link"}
 HAND = TaskSpec("hand", "pose", frame="gripper_right_base_link")
@@ -168,3 +169,25 @@ def test_a_target_read_from_a_task_is_a_copy(solver):
     before = task.target
     task.target.translation[:] = 0.0
     assert np.array_equal(task.target.homogeneous, before.homogeneous)
+
+
+@pytest.mark.parametrize("name", ["hand\n", "hand\nfoot", "1hand", "a" * 65])
+def test_a_name_that_cannot_name_its_target_topic_is_rejected(name):
+    rejects_spec("task name", name=name)
+
+
+def test_a_name_of_the_longest_length_is_accepted():
+    spec = replace(HAND, name="a" * 64)
+    assert validate_stack([spec], FRAMES.__contains__) == [spec]
+
+
+@pytest.mark.parametrize("joint, message", [("universe", "the world"),
+                                            ("root_joint", "not a one-coordinate joint"),
+                                            ("no_such_joint", "unknown joint")])
+def test_a_posture_target_names_only_the_robots_one_coordinate_joints(talos, solver, joint,
+                                                                      message):
+    task = solver.task("posture")
+    before = task.target.copy()
+    with pytest.raises(TargetError, match=message):
+        task.set_joint_targets(talos, {joint: 0.1})
+    assert np.array_equal(task.target, before)

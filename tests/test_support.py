@@ -241,6 +241,18 @@ def test_support_needs_the_qp_hierarchy(talos):
         solver.set_stack(parse_stack_yaml(SUPPORT_STACK), bench_start(talos))
 
 
+def test_a_support_task_sent_again_keeps_its_polygon(talos):
+    """A stack sent again keeps each task's target: for a support task, its polygon."""
+    q = bench_start(talos)
+    solver = PIKSolver(talos, hierarchy="qp")
+    solver.set_stack(parse_stack_yaml(SUPPORT_STACK), q)
+    solver.task("balance").set_target(feet_polygon(talos, q))
+    before = solver.task("balance").vertices.copy()
+    solver.set_stack(parse_stack_yaml(SUPPORT_STACK), q)
+    np.testing.assert_array_equal(solver.task("balance").vertices, before)
+    assert solver.task("balance").edge_count == len(before)
+
+
 @pytest.mark.parametrize("vertices, message", [
     ([[0, 0], [1, 0], [np.nan, 1]], "NaN"),
     ([[0, 0], [1, 0]], ">= 3"),

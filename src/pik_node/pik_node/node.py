@@ -43,17 +43,19 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, PolygonStamped, PoseStamped
 from rcl_interfaces.msg import (FloatingPointRange, ParameterDescriptor,
                                 SetParametersResult)
-from rclpy.exceptions import InvalidParameterTypeException, ParameterException
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidTopicNameException,
+                               ParameterException)
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
+from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
 from stance.limits import STRATEGIES
 from stance.pik import HIERARCHIES, LM_DAMPING, demo_stack_file
-from stance.stack import parse_stack_yaml
+from stance.stack import parse_stack_yaml, validate_stack
 from stance.swing import LimitFileError, limit_file_path, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
@@ -103,10 +105,10 @@ class PikNode(Node):
             raise StackError(f"no demo stack ships for robot {get('robot').value!r}: "
                              "set the stack_file parameter")
         try:
-            with open(stack_file) as stream:
+            with open(stack_file, encoding="utf-8") as stream:
                 specs = parse_stack_yaml(stream.read(), self.robot.model.existFrame)
             check_task_frames(self.robot, specs)
-        except (OSError, StackError) as error:
+        except (OSError, StackError, UnicodeDecodeError) as error:
             raise StackError(f"stack_file: {_file_error(error)}") from None
         self.solver.set_stack(specs, self.q)
         self.solver.warm_up(self.q)   # before any service or cycle: no first-step stall
@@ -212,7 +214,7 @@ class PikNode(Node):
         for name, msg_type in wanted.items():
             if name not in self.target_subscriptions:
                 subscription = self.create_subscription(
-                    msg_type, f"/pik/tasks/{name}/target",
+                    msg_type, target_topic(name),
                     lambda msg, task_name=name: self._on_target(task_name, msg), RELIABLE)
                 self.target_subscriptions[name] = (msg_type, subscription)
 
@@ -246,10 +248,13 @@ class PikNode(Node):
         try:
             specs = [spec_from_msg(msg) for msg in request.tasks]
             check_task_frames(self.robot, specs)
+            validate_stack(specs, self.robot.model.existFrame)  # names first, then topics:
+            for spec in specs:      # checked before the stack changes, its subscriptions follow
+                validate_full_topic_name(target_topic(spec.name))
             with self._lock:
                 self.solver.set_stack(specs, self.q)
                 self._status_template = None
-        except (StackError, RobotModelError) as error:
+        except (StackError, RobotModelError, InvalidTopicNameException) as error:
             response.success, response.message = False, f"stack rejected: {error}"
             self._reject(response.message)
             return response
@@ -436,6 +441,11 @@ def _file_error(error: Exception) -> str:
     if isinstance(error, OSError) and error.strerror:
         return f"{error.strerror}: {error.filename}" if error.filename else error.strerror
     return str(error)
+
+
+def target_topic(task_name: str) -> str:
+    """The topic a task's targets arrive on."""
+    return f"/pik/tasks/{task_name}/target"
 
 
 def _header(stamp, frame_id=""):

@@ -243,15 +243,14 @@ class PIKSolver:
                                  "only the qp hierarchy solves (hierarchy: qp)")
         needs_com = any(isinstance(task, (ComTask, SupportTask)) for task in tasks.values())
         self.compute_kinematics(q, com=needs_com)  # raises on a bad q before any change
-        previous, self.tasks = self.tasks, tasks
-        self._needs_com = needs_com
         for name, task in tasks.items():
-            old = previous.get(name)
+            old = self.tasks.get(name)
             if old is not None and (old.spec.kind, old.spec.frame) == (task.spec.kind,
                                                                          task.spec.frame):
-                task.target = old.target
+                task.keep_target(old)
             else:
                 task.hold(self.robot, q)
+        self.tasks, self._needs_com = tasks, needs_com
         self._layout = self._make_layout()
 
     def stack(self) -> list:

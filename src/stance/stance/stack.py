@@ -25,7 +25,8 @@ KIND_AXES = {
     "support": (),
 }
 MAX_PRIORITY = 31
-NAME_PATTERN = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")   # the whole name (fullmatch)
+MAX_NAME_LENGTH = 64   # characters: a name also names topics (pik_node's task targets)
 
 
 class StackError(ValueError):
@@ -36,10 +37,10 @@ class StackError(ValueError):
 class TaskSpec:
     """One task of a stack.
 
-    name: unique, [A-Za-z][A-Za-z0-9_]*; kind: one of KINDS; frame: robot frame for frame
-    kinds; priority: 0 (highest) .. MAX_PRIORITY; weight > 0 within the level; axes: subset
-    of the kind's axes (world-aligned), empty = all; gain in (0, 1]: fraction of the error
-    corrected per IK step.
+    name: unique, [A-Za-z][A-Za-z0-9_]*, at most MAX_NAME_LENGTH characters; kind: one of
+    KINDS; frame: robot frame for frame kinds; priority: 0 (highest) .. MAX_PRIORITY; weight
+    > 0 within the level; axes: subset of the kind's axes (world-aligned), empty = all; gain
+    in (0, 1]: fraction of the error corrected per IK step.
     """
 
     name: str
@@ -58,8 +59,11 @@ class TaskSpec:
 def validate_spec(spec: TaskSpec, frame_exists=None) -> None:
     """Raise StackError if `spec` is malformed; `frame_exists(name)` checks robot frames."""
     where = f"task {spec.name!r}"
-    if not isinstance(spec.name, str) or not NAME_PATTERN.match(spec.name):
+    if not isinstance(spec.name, str) or not NAME_PATTERN.fullmatch(spec.name):
         raise StackError(f"task name {spec.name!r} must match {NAME_PATTERN.pattern}")
+    if len(spec.name) > MAX_NAME_LENGTH:
+        raise StackError(f"task name {spec.name[:16]!r}... has {len(spec.name)} characters, "
+                         f"more than {MAX_NAME_LENGTH}")
     if spec.kind not in KINDS:
         raise StackError(f"{where}: unknown kind {spec.kind!r} "
                          f"(expected one of {', '.join(KINDS)})")

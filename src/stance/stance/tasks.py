@@ -192,6 +192,11 @@ class Task:
         """Set the target to the current value (kinematics of q already in robot.data)."""
         raise NotImplementedError
 
+    def keep_target(self, old) -> None:
+        """Take over the target of `old`, a task of the same kind and frame that this one
+        replaces in a new stack."""
+        self.target = old.target
+
     def write(self, robot, q, jacobian: np.ndarray, error: np.ndarray) -> None:
         """Write J (rows x nv) and e (rows) into the given arrays."""
         raise NotImplementedError
@@ -392,6 +397,10 @@ class SupportTask(Task):
     def hold(self, robot, q) -> None:
         """A support task has no value to hold: its polygon stays as it is (none at first)."""
 
+    def keep_target(self, old) -> None:
+        """Take over the polygon of `old` (a support task this one replaces)."""
+        self.vertices, self._normals, self._offsets = old.vertices, old._normals, old._offsets
+
     def set_target(self, vertices) -> None:
         """Set the polygon from >= 3 xy vertices (m, world frame) spanning a nonzero area."""
         points = require_finite(vertices, f"polygon of task {self.name!r}")
@@ -454,7 +463,11 @@ class PostureTask(Task):
         for joint, value in positions.items():
             if not robot.model.existJointName(joint):
                 raise TargetError(f"posture target names unknown joint {joint!r}")
-            joint_model = robot.model.joints[robot.model.getJointId(joint)]
+            joint_id = robot.model.getJointId(joint)
+            if joint_id == 0:       # Pinocchio's world joint: its idx_q is -1
+                raise TargetError(f"posture target names {joint!r}, the world, not a joint "
+                                  "of the robot")
+            joint_model = robot.model.joints[joint_id]
             if joint_model.nq != 1:
                 raise TargetError(f"joint {joint!r} is not a one-coordinate joint")
             target[joint_model.idx_q] = float(require_finite(value, f"position of {joint!r}"))

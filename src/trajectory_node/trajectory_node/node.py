@@ -99,7 +99,7 @@ from contact_planner_node.conversions import actuated_q_index
 from geometry_msgs.msg import PointStamped, PoseStamped
 from pik_node.conversions import se3_from_pose_msg
 from pik_node.node import (LATCHED, RELIABLE, TARGET_TYPES, fill_pose_msg, float_parameter,
-                           run_node)
+                           run_node, target_topic)
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
@@ -594,7 +594,7 @@ class TrajectoryNode(Node):
         key = (spec.name, TARGET_TYPES[spec.kind])
         if key not in self._target_pubs:
             self._target_pubs[key] = self.create_publisher(
-                key[1], f"/pik/tasks/{spec.name}/target", RELIABLE)
+                key[1], target_topic(spec.name), RELIABLE)
         return self._target_pubs[key]
 
     def _publish_active(self, msg, index, start, ends_after):
