@@ -143,6 +143,13 @@ def test_unknown_scene_name_is_a_malformed_scene(planner):
            "no_such_scene")
 
 
+def test_a_scene_file_that_is_not_text_is_a_malformed_scene(planner, tmp_path):
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xf0\x00\xff robot: talos")
+    failed(planner, PlanContacts.Goal(scene=str(binary)), "malformed_scene", "scene",
+           "not a YAML text file")
+
+
 def test_unknown_goal_frame_is_a_bad_goal(planner):
     goal = PlanContacts.Goal(scene="flat_steps", goal_frame="no_such_frame", goal_axis="x",
                              goal_threshold=1.0, goal_sense=1)

@@ -257,6 +257,13 @@ def test_unknown_robot_and_non_mapping_documents_are_rejected(document):
         parse_scene(["name"], "<test>")
 
 
+def test_a_file_that_is_not_text_is_a_scene_error(tmp_path):
+    binary = tmp_path / "scene.yaml"
+    binary.write_bytes(b"\xf0\x00\xff robot: talos")
+    with pytest.raises(SceneError, match="not a YAML text file"):
+        load_scene(str(binary))
+
+
 @pytest.mark.parametrize("polygon, problem", [
     ([[0, 0], [1, 0], [0, 1]], ""),
     ([[0, 0], [1, 0], [1, 1], [0, 1]], ""),

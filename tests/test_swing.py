@@ -440,6 +440,13 @@ def test_limit_file_errors_name_the_field(mannequin, entry, field):
         parse_limits({"joints": {"left_hip": entry}}, mannequin)
 
 
+def test_a_limit_file_that_is_not_text_is_a_limit_file_error(mannequin, tmp_path):
+    binary = tmp_path / "limits.yaml"
+    binary.write_bytes(b"\xf0\x00\xff joints: {}")
+    with pytest.raises(LimitFileError, match="not a YAML text file"):
+        load_limit_file(binary, mannequin)
+
+
 @pytest.mark.parametrize("joint, message", [("nose", "no joint"),
                                             ("left_elbow", "not a spherical joint")])
 def test_limit_file_rejects_joints_that_cannot_hold_a_swing_limit(mannequin, joint, message):

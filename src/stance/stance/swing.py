@@ -1083,7 +1083,10 @@ def load_limit_file(path, robot) -> list:
     """
     path = limit_file_path(path)
     try:
-        document = yaml.safe_load(path.read_text())
+        document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as error:
+        raise LimitFileError(f"{path}: not a YAML text file (not UTF-8: byte {error.start})") \
+            from error
     except yaml.YAMLError as error:
         raise LimitFileError(f"{path}: not valid YAML: {error}") from error
     return parse_limits(document, robot)

@@ -146,7 +146,10 @@ def load_scene(spec: str, robot=None) -> Scene:
         raise SceneError(f"unknown scene {spec!r}: neither a shipped scene "
                          f"({', '.join(scene_names())}) nor a file")
     try:
-        document = yaml.safe_load(path.read_text())
+        document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as error:
+        raise SceneError(f"{path}: not a YAML text file (not UTF-8: byte {error.start})") \
+            from error
     except yaml.YAMLError as error:
         raise SceneError(f"{path}: not valid YAML: {error}") from error
     return parse_scene(document, str(path), robot)
