@@ -241,6 +241,28 @@ def test_support_needs_the_qp_hierarchy(talos):
         solver.set_stack(parse_stack_yaml(SUPPORT_STACK), bench_start(talos))
 
 
+@pytest.mark.parametrize("ahead", [1.0, 1000.0])
+def test_a_polygon_out_of_reach_leaves_the_levels_below_to_their_hot_starts(talos, ahead):
+    """The support level cannot keep its rows (the polygon `ahead` m in front, the CoM
+    at its speed limits toward it): the rows it misses become equalities of the levels
+    below, which then solve from their hot starts. Kept as exactly tight inequalities,
+    they left those levels degenerate, and ProxSuite solved 1.6-2 of them per step."""
+    q = bench_start(talos)
+    solver = PIKSolver(talos, hierarchy="qp", dt=0.002)
+    solver.set_stack(parse_stack_yaml(SUPPORT_STACK), q)
+    solver.task("balance").set_target(feet_polygon(talos, q) + [ahead, 0.0])
+    distances = []
+    for step in range(300):
+        if step == 100:
+            solves = solver.hierarchy.qp_solves
+        result = solver.step(q)
+        q = result.q
+        distances.append(result.task_errors["balance"])
+    assert (solver.hierarchy.qp_solves - solves) / 200 < 0.5
+    assert distances[-1] < distances[100] - 0.05   # the CoM heads for the polygon
+    assert result.levels[0].condition == "met"      # the feet hold
+
+
 def test_a_support_task_sent_again_keeps_its_polygon(talos):
     """A stack sent again keeps each task's target: for a support task, its polygon."""
     q = bench_start(talos)
