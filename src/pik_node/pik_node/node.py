@@ -73,6 +73,7 @@ RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 STREAM = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+OVERRUN_LOG_PERIOD = 5.0   # s: a loop behind its rate says so at most this often
 TARGET_TYPES = {"pose": PoseStamped, "position": PoseStamped, "orientation": PoseStamped,
                 "com": PointStamped, "posture": JointState, "support": PolygonStamped}
 
@@ -141,6 +142,7 @@ class PikNode(Node):
                                              daemon=True)
         self.cycles = 0
         self.overruns = 0
+        self.last_solve_time = 0.0    # s, the last IK step's
         self.discarded_steps = 0   # IK steps in a row whose configuration was not finite
         self._status_template = None
         self._hierarchy_name = get("hierarchy").value
@@ -351,6 +353,12 @@ class PikNode(Node):
                 missed = int(-delay // self._period)
                 self.overruns += missed
                 next_tick += missed * self._period
+                if missed:
+                    self.get_logger().warning(
+                        f"IK loop behind its {1.0 / self._period:g} Hz: {self.overruns} "
+                        f"periods missed since start, {self.cycles} steps taken (the last "
+                        f"{1e3 * self.last_solve_time:.1f} ms; /pik/status.overruns)",
+                        throttle_duration_sec=OVERRUN_LOG_PERIOD)
 
     def _tick(self):
         with self._lock:
@@ -358,6 +366,7 @@ class PikNode(Node):
             # received after its stamp (a callback may hold the lock for a while)
             stamp = self.get_clock().now().to_msg()
             result = self.solver.step(self.q)
+            self.last_solve_time = result.solve_time
             finite = np.isfinite(result.q).all()
             if finite:
                 self.q = result.q
