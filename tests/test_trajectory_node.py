@@ -7,6 +7,7 @@ the current transition; with a lagging pik_node the clock waits at each transiti
 until its created contacts are made; the time-optimal timing is the library's; bad
 parameters end the node with exit code 1."""
 
+import math
 import os
 import signal
 import threading
@@ -156,12 +157,13 @@ class TrajectoryProbe(BackgroundNode):
             return (self.trajectories[counts[0]:], self.stances[counts[1]:],
                     [s.data for s in self.statuses[counts[2]:]])
 
-    def publish_plan(self, msg):
-        """Publish msg, stamped now, once trajectory_node subscribes (a plan stamped before
-        the node started is not executed)."""
+    def publish_plan(self, msg, restamp=True):
+        """Publish msg, stamped now unless not restamp, once trajectory_node subscribes (a
+        plan stamped before the node started is not executed)."""
         wait_until(lambda: self.plan_pub.get_subscription_count() > 0, 30,
                    what="trajectory_node's plan subscription")
-        msg.header.stamp = Time(nanoseconds=time.time_ns()).to_msg()
+        if restamp:
+            msg.header.stamp = Time(nanoseconds=time.time_ns()).to_msg()
         self.plan_pub.publish(msg)
 
     def wait_status(self, counts, state, timeout):
@@ -327,6 +329,8 @@ def test_a_late_status_reader_receives_the_recent_statuses_in_order(graph, flat_
     ("unknown scene", ["scene", "no_such_scene"]),
     ("missing joint", ["stances[0].witness_joints", "missing"]),
     ("witness off its contacts", ["fails verification", "stance 1:", "mm from its target"]),
+    # rclpy's Time refuses it: the node died, and again at each restart (the plan latched)
+    ("stamp before the epoch", ["header.stamp", "before the epoch"]),
 ])
 def test_bad_plan_fails_with_its_reason_and_the_node_lives_on(graph, flat_steps_plan, case,
                                                               words):
@@ -341,11 +345,13 @@ def test_bad_plan_fails_with_its_reason_and_the_node_lives_on(graph, flat_steps_
         msg.scene = "no_such_scene"
     elif case == "witness off its contacts":
         msg.stances[1].witness_base_pose.position.x += 0.05   # m: every spot moves with it
+    elif case == "stamp before the epoch":
+        msg.header.stamp.sec = -1
     else:
         msg.stances[0].witness_joints.name.pop()
         msg.stances[0].witness_joints.position.pop()
     counts = probe.counts()
-    probe.publish_plan(msg)
+    probe.publish_plan(msg, restamp=case != "stamp before the epoch")
     statuses = probe.wait_status(counts, "failed", 30)
     failure = next(s for s in statuses if s.startswith("failed:"))
     for word in words:
@@ -382,6 +388,27 @@ def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat_st
     assert stances[restart][0] >= last_end - 0.05
     wait_until(lambda: probe.joint_error(robot, short.stances[-1].q) < JOINT_TOLERANCE, 20,
                what="pik_node's joints on the new plan's last witness")
+    assert node.poll() is None
+
+
+def test_a_plan_to_reject_never_supersedes_the_one_under_way(graph, flat_steps_plan):
+    """A plan that fails its conversion (a NaN witness) arriving during an execution is
+    rejected at once; the execution goes on to its last stance. It used to take over at
+    the end of the transition, then fail: the robot stopped halfway."""
+    node, probe = graph
+    robot, scene, plan = flat_steps_plan
+    short = Plan(plan.scene, plan.robot, plan.stances[:5])
+    bad = plan_msg(robot, scene, plan)
+    bad.stances[1].witness_base_pose.position.x = math.nan
+    counts = probe.counts()
+    probe.publish_plan(plan_msg(robot, scene, short))
+    wait_until(lambda: len(probe.since(counts)[1]) >= 3, 60, what="stance 2 announced")
+    probe.publish_plan(bad)
+    statuses = probe.wait_status(counts, "done", 90)
+    assert any(status.startswith("executing: a newer plan was rejected") and
+               "stances[1].witness" in status for status in statuses), statuses
+    assert not any("superseded" in status for status in statuses), statuses
+    assert statuses[-1] == f"done: reached stance 4 of scene {plan.scene!r}"
     assert node.poll() is None
 
 

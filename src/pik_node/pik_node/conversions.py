@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 from geometry_msgs.msg import Point, Polygon, Pose
+from rclpy.time import Time
 from stance.stack import AXES, FRAME_KINDS, KINDS, StackError, TaskSpec
 from stance.tasks import TargetError, pose_from_position_quaternion, require_finite
 from stance_msgs.msg import TaskSpec as TaskSpecMsg
@@ -172,3 +173,11 @@ def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positio
     except TargetError as error:
         raise TargetError(f"joints: {error}") from None
     return new_q
+
+
+def time_from_msg(stamp, field: str) -> Time:
+    """rclpy Time of a builtin_interfaces/Time; TargetError naming the field for a time
+    before the epoch, which rclpy refuses with a bare ValueError."""
+    if stamp.sec < 0:
+        raise TargetError(f"{field}: {stamp.sec} s, before the epoch")
+    return Time.from_msg(stamp)

@@ -60,7 +60,10 @@ another is interpolated replaces it. Every plan is verified first (stance.planni
 what `stance check-plan` runs: contacts, collisions, joint limits, static equilibrium, one
 contact change per stance); one that fails is rejected with its first failures. A plan that
 cannot be converted, verified, interpolated or executed is reported (status `failed`, log)
-and the node waits for the next one; pik_node then holds its last targets. A plan stamped
+and the node waits for the next one; pik_node then holds its last targets. Conversion (the
+fields, the header stamp) is checked on arrival: a plan that fails it never supersedes the
+one interpolated or executed, which goes on (its state, with the rejection, in the
+status). A plan stamped
 before the node started (the latched last plan, found at start-up) is not executed unless
 `execute_latched_plan` is true: a node restarted by `stance graph` must not replay the last
 plan from its first witness; the status says so. A plan equal to the last one received
@@ -97,7 +100,7 @@ import traceback
 import pinocchio as pin
 from contact_planner_node.conversions import actuated_q_index
 from geometry_msgs.msg import PointStamped, PoseStamped
-from pik_node.conversions import se3_from_pose_msg
+from pik_node.conversions import se3_from_pose_msg, time_from_msg
 from pik_node.node import (LATCHED, RELIABLE, TARGET_TYPES, fill_pose_msg, float_parameter,
                            run_node, target_topic)
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
@@ -105,7 +108,6 @@ from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import InterpolationError, TransitionPlanner
@@ -275,7 +277,7 @@ class TrajectoryNode(Node):
                                                            "/pik/set_configuration")
         self.set_stack_client = self.create_client(SetStack, "/pik/set_stack")
         self._target_pubs = {}
-        self._pending = None                  # newest StancePlan not yet taken
+        self._pending = None                  # newest (StancePlan, Plan, Scene) not yet taken
         self._last_plan = None                # last StancePlan received
         self._wakeup = threading.Condition()
         self._stop = threading.Event()
@@ -335,7 +337,16 @@ class TrajectoryNode(Node):
             self.get_logger().info("plan received again: ignored")
             return
         self._last_plan = msg
-        stamp = Time.from_msg(msg.header.stamp)
+        try:    # checked here, so that a plan to reject never supersedes one under way
+            stamp = time_from_msg(msg.header.stamp, "header.stamp")
+            plan, scene = plan_from_msg(msg, self.robot, self.robot_spec)
+        except ValueError as error:
+            if self._state in ("interpolating", "executing"):
+                self._status(self._state, f"a newer plan was rejected ({error}); this one "
+                                          "goes on")
+            else:
+                self._status("failed", f"plan rejected: {error}")
+            return
         if not self.execute_latched_plan and 0 < stamp.nanoseconds < self._started.nanoseconds:
             self._status("idle", f"plan on scene {msg.scene!r} stamped "
                                  f"{(self._started - stamp).nanoseconds * 1e-9:.1f} s before "
@@ -343,7 +354,7 @@ class TrajectoryNode(Node):
                                  "execute_latched_plan)")
             return
         with self._wakeup:
-            self._pending = msg
+            self._pending = (msg, plan, scene)
             self._wakeup.notify()
 
     def _has_pending(self) -> bool:
@@ -369,23 +380,23 @@ class TrajectoryNode(Node):
             with self._wakeup:
                 while self._pending is None and not self._stop.is_set():
                     self._wakeup.wait()
-                msg, self._pending = self._pending, None
-            if msg is None:
+                pending, self._pending = self._pending, None
+            if pending is None:
                 continue
             try:
-                self._process(msg)
+                self._process(*pending)
             except Exception as error:  # noqa: BLE001 - the node must keep serving plans
                 if self._stop.is_set():
                     return
                 self.get_logger().error(traceback.format_exc())
                 self._status("failed", f"internal error: {error!r}")
 
-    def _process(self, msg: StancePlan):
-        """Convert, interpolate, time and execute one plan; failures end in `failed`."""
+    def _process(self, msg: StancePlan, plan, scene):
+        """Verify, interpolate, time and execute one plan (plan, scene: msg's, converted);
+        failures end in `failed`."""
         self._status("interpolating", f"plan of {len(msg.stances)} stances on scene "
                                       f"{msg.scene!r}, n = {self.steps}")
         try:
-            plan, scene = plan_from_msg(msg, self.robot, self.robot_spec)
             _require_verified(plan, scene, self.robot)
             planner = TransitionPlanner(self.robot, scene, CollisionModel(self.robot, scene),
                                         steps=self.steps)
@@ -659,6 +670,7 @@ class TrajectoryNode(Node):
         return response
 
     def _status(self, state: str, message: str):
+        self._state = state
         text = f"{state}: {message}"
         self.status_pub.publish(String(data=text))
         if state == "failed":
