@@ -180,7 +180,8 @@ def assert_switches_on_once(states, at):
 
 
 @pytest.mark.parametrize("case", ["nan pose", "no contact", "no supporting contact",
-                                  "off its surface's plane"])
+                                  "off its surface's plane", "spot twice",
+                                  "stamp before the epoch", "stamp a year ahead"])
 def test_bad_stance_is_rejected_and_the_state_kept(gate, scene, case):
     node, probe = gate
     probe.publish_stance(stance_msg(scene, 10, FEET))
@@ -193,6 +194,12 @@ def test_bad_stance_is_rejected_and_the_state_kept(gate, scene, case):
     elif case == "no supporting contact":
         for contact in bad.contacts:
             contact.in_stability = False
+    elif case == "spot twice":
+        bad.contacts[1].spot = bad.contacts[0].spot
+    elif case == "stamp before the epoch":   # rclpy's Time refuses it: the node died
+        bad.header.stamp.sec = -1
+    elif case == "stamp a year ahead":       # the transition would never end
+        bad.header.stamp = stamp(time.time() + 3.15e7)
     else:  # the floor learned at z = 0 is not at z = 0.1 m
         bad.contacts[0].pose.position.z = 0.1
     probe.publish_stance(bad)
@@ -204,6 +211,29 @@ def test_bad_stance_is_rejected_and_the_state_kept(gate, scene, case):
     assert all((s.stance_index, s.enabled, s.blend) == (10, True, 1.0) for s in kept)
     assert node.poll() is None
     node.log_path.write_text("")  # the next case looks for its own rejection
+
+
+def test_a_rejected_stance_teaches_no_surface(gate, scene):
+    """Without a scene, surfaces are learned from the contacts of the stances the node
+    accepts only: a rejected stance once taught its surfaces, and every later stance on
+    them was measured against the rejected one's plane."""
+    node, probe = gate
+    probe.publish_stance(stance_msg(scene, 20, FEET))
+    wait_state(probe, lambda s: s.stance_index == 20, 10, "stance 20")
+    bad = stance_msg(scene, 21, FEET + (HAND,))
+    bad.contacts[2].surface = "shelf"          # a surface name never seen
+    bad.contacts[2].pose.position.z += 0.3
+    for contact in bad.contacts:               # rejected: no supporting contact
+        contact.in_stability = False
+    probe.publish_stance(bad)
+    wait_until(lambda: "active stance 21 rejected" in node.log_path.read_text(), 5,
+               what="the rejection in the log")
+    good = stance_msg(scene, 22, FEET + (HAND,))
+    good.contacts[2].surface = "shelf"
+    probe.publish_stance(good)
+    wait_state(probe, lambda s: s.stance_index == 22, 10, "stance 22 on the shelf")
+    assert "active stance 22 rejected" not in node.log_path.read_text()
+    node.log_path.write_text("")
 
 
 def test_plan_is_scheduled_and_unknown_surfaces_are_rejected_with_a_scene(processes, scene):

@@ -17,8 +17,10 @@ ramp_time, so nothing jumps). An ON switch at the end of a transition waits for 
 to be known at its stance: stance k published again, or stance k + 1 (the next transition
 starts); without either, the stabilizer stays off. A plan on /contact_planner/plan is
 scheduled ahead (logged) and an active stance not following it is reported. Bad input (no
-contact, no supporting contact, NaN or non-unit pose, unknown surface or spot with a
-scene, a contact off its surface's plane) is logged and rejected; the state is kept.
+contact, no supporting contact, a spot in two contacts, NaN or non-unit pose, unknown
+surface or spot with a scene, a contact off its surface's plane, a stamp before the epoch
+or more than MAX_STAMP_AHEAD s ahead) is logged and rejected; the state is kept, learned
+surfaces included (a rejected stance or plan teaches none).
 
 Topics (QoS in parentheses):
   sub  /trajectory/active_stance  stance_msgs/ContactStance (reliable, keep last 10)
@@ -30,17 +32,17 @@ Topics (QoS in parentheses):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import sys
 
 from contact_planner_node.conversions import contact_from_msg
-from pik_node.conversions import se3_from_pose_msg
+from pik_node.conversions import se3_from_pose_msg, time_from_msg
 from pik_node.node import LATCHED, RELIABLE, STREAM, float_parameter, run_node
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
-from rclpy.time import Time
 from stance.execution.stabilizer import (NOT_YET_REACHED, LearnedSurfaces, StabilizerGate,
                                          Transition, switch)
 from stance.planning.scene import load_scene
@@ -48,6 +50,7 @@ from stance.tasks import TargetError
 from stance_msgs.msg import ContactStance, StabilizerState, StancePlan
 from std_msgs.msg import Header
 
+MAX_STAMP_AHEAD = 3600.0   # s: an active stance's stamp is a transition's planned end
 ACTIVE_STANCE_TOPIC = "/trajectory/active_stance"
 PLAN_TOPIC = "/contact_planner/plan"
 STATE_TOPIC = "/stabilizer/state"
@@ -90,11 +93,32 @@ class StabilizerGateNode(Node):
         self.declare_parameter("rate", 50.0, float_parameter(
             "publication rate of the stabilizer state (Hz)", 1.0, 1000.0))
 
+    @contextlib.contextmanager
+    def _learning(self):
+        """Surfaces and spots learned inside the block (no scene) are kept only when it ends
+        without an error: a rejected stance or plan teaches nothing."""
+        if not self.learning:
+            yield
+            return
+        known = self.gate.scene
+        self.gate.scene = known.copy()
+        try:
+            yield
+        except BaseException:
+            self.gate.scene = known
+            raise
+
     def _contacts(self, stance: ContactStance, field: str) -> list:
         """Library contacts of a ContactStance; ValueError naming the field. Without a scene,
-        unknown surfaces and spots are first learned from the contact frames."""
+        unknown surfaces and spots are first learned from the contact frames (call inside
+        _learning)."""
         if not stance.contacts:
             raise ValueError(f"{field}.contacts: empty")
+        spots = [msg.spot for msg in stance.contacts]
+        for index, spot in enumerate(spots):
+            if spot in spots[:index]:
+                raise ValueError(f"{field}.contacts[{index}].spot: {spot!r} is already in "
+                                 f"contacts[{spots.index(spot)}]")
         if self.learning:
             frames = []
             for index, msg in enumerate(stance.contacts):
@@ -109,9 +133,10 @@ class StabilizerGateNode(Node):
 
     def _on_plan(self, msg: StancePlan):
         try:
-            stances = [self._contacts(stance, f"stances[{k}]")
-                       for k, stance in enumerate(msg.stances)]
-            events = self.gate.schedule(stances)
+            with self._learning():
+                stances = [self._contacts(stance, f"stances[{k}]")
+                           for k, stance in enumerate(msg.stances)]
+                events = self.gate.schedule(stances)
         except ValueError as error:
             self.get_logger().warning(f"plan of scene {msg.scene!r} rejected: {error}")
             return
@@ -123,13 +148,17 @@ class StabilizerGateNode(Node):
                                f"{steps or 'the stabilizer never switches'}")
 
     def _on_active_stance(self, msg: ContactStance):
+        now = self.get_clock().now().nanoseconds * 1e-9
         try:
-            support = self.gate.support(msg.index, self._contacts(msg, "active_stance"))
+            with self._learning():
+                stamp = time_from_msg(msg.header.stamp, "header.stamp").nanoseconds * 1e-9
+                if stamp > now + MAX_STAMP_AHEAD:
+                    raise ValueError(f"header.stamp: {stamp - now:.0f} s ahead, more than "
+                                     f"{MAX_STAMP_AHEAD:g} s for a transition's end")
+                support = self.gate.support(msg.index, self._contacts(msg, "active_stance"))
         except ValueError as error:
             self.get_logger().warning(f"active stance {msg.index} rejected, state kept: {error}")
             return
-        now = self.get_clock().now().nanoseconds * 1e-9
-        stamp = Time.from_msg(msg.header.stamp).nanoseconds * 1e-9
         if self.transitions:
             # the last stance announced again, or the next one: the robot is at the last
             # one (or at a new plan's first witness after a failed execution); an earlier

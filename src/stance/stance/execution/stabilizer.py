@@ -235,6 +235,12 @@ class LearnedSurfaces:
         self.surfaces = {}
         self.spots = {}
 
+    def copy(self) -> LearnedSurfaces:
+        """A lookup knowing what this one knows, learning on its own from now on."""
+        other = LearnedSurfaces()
+        other.surfaces, other.spots = dict(self.surfaces), dict(self.spots)
+        return other
+
     def learn(self, spot: str, surface: str, contact_frame: pin.SE3, friction: float) -> None:
         """Remember `surface` at contact_frame (world) and `spot` as a point, if unknown."""
         if surface not in self.surfaces:
