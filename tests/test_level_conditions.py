@@ -9,7 +9,7 @@ import pytest
 
 from stance.pik import LM_DAMPING, PIKSolver
 from stance.robot import Robot
-from stance.stack import parse_stack_yaml
+from stance.stack import TaskSpec, parse_stack_yaml
 from stance_tools.bench import bench_start
 
 FEET = """
@@ -128,3 +128,25 @@ def test_a_level_the_velocity_limits_slow_is_a_conflict_not_damped(talos, hierar
         assert any(name.endswith(" velocity") for name in result.binding_constraints)
     assert levels[0].condition == "met"
     assert levels[1].condition == "conflict"
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+@pytest.mark.parametrize("weight, damping", [(1e10, 1e-3), (1e12, 1e-3), (1e300, 1e-3),
+                                             (1e5, 1e-6)])
+def test_heavy_duplicate_rows_give_a_finite_step_and_a_condition(talos, hierarchy, weight,
+                                                                 damping):
+    """Two tasks with the same rows at a weight that dwarfs lambda^2 (Gram entries ~weight
+    against damping^2): the Cholesky's pivots rounded to 0 or below, and the step was NaN
+    or raised ZeroDivisionError (while stepping, or reading the level's condition)."""
+    q = bench_start(talos)
+    stack = [TaskSpec(name, "orientation", frame="right_sole_link", weight=weight)
+             for name in ("a", "b")]
+    solver = PIKSolver(talos, hierarchy=hierarchy, damping=damping)
+    solver.set_stack(stack, q)
+    target = solver.task("a").target
+    target.rotation = pin.exp3(np.array([0.0, 0.0, 0.01])) @ target.rotation
+    solver.task("a").set_target(target)     # a 0.01 rad conflict between the two
+    result = solver.step(q)
+    assert np.isfinite(result.q).all()
+    assert result.levels[0].condition in ("met", "conflict", "singular", "damped")
+    assert np.isfinite(result.levels[0].step_residual_norm)

@@ -364,10 +364,23 @@ def _sparse_rows_product(rows, matrix):
     return product
 
 
+# relative to the largest diagonal entry: the smallest Cholesky pivot kept (below it the
+# matrix is singular to rounding)
+PIVOT_EPSILON = 1e-15
+
+
 @numba.njit(cache=True, fastmath=REORDERING)
-def _spd_solve(gram, rhs):
-    """x with gram x = rhs, gram symmetric positive definite (Cholesky, small sizes)."""
+def _spd_solve(gram, rhs, smallest_eigenvalue):
+    """x with gram x = rhs, gram symmetric positive definite with no eigenvalue below
+    smallest_eigenvalue (Cholesky, small sizes). No exact pivot is below it either (nor
+    below PIVOT_EPSILON x the largest diagonal entry); one that rounding took there is
+    raised to it: rows of weight 1e10 (Gram entries ~1e10 against lambda^2 = 1e-6) gave a
+    pivot of 0 or below, a division by zero or a NaN step."""
     n = gram.shape[0]
+    largest = 0.0
+    for i in range(n):
+        largest = max(largest, gram[i, i])
+    floor = max(smallest_eigenvalue, PIVOT_EPSILON * largest)
     low = np.zeros((n, n))
     for i in range(n):
         for j in range(i + 1):
@@ -375,7 +388,7 @@ def _spd_solve(gram, rhs):
             for p in range(j):
                 acc -= low[i, p] * low[j, p]
             if i == j:
-                low[i, i] = np.sqrt(acc)
+                low[i, i] = np.sqrt(max(acc, floor))
             else:
                 low[i, j] = acc / low[j, j]
     x = rhs.copy()
@@ -397,14 +410,15 @@ def _damped_least_squares(projected, residual, damping_sq):
     """argmin |P y - r|^2 + lambda^2 |y|^2 through the smaller Gram matrix of P."""
     rows, cols = projected.shape
     if rows <= cols:
-        x = _spd_solve(_damped_gram(projected, damping_sq), residual)
+        x = _spd_solve(_damped_gram(projected, damping_sq), residual, damping_sq)
         y = np.zeros(cols)
         for i in range(rows):
             for c in range(cols):
                 y[c] += projected[i, c] * x[i]
         return y
     transposed = np.ascontiguousarray(projected.T)
-    return _spd_solve(_damped_gram(transposed, damping_sq), _times(transposed, residual))
+    return _spd_solve(_damped_gram(transposed, damping_sq), _times(transposed, residual),
+                      damping_sq)
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
