@@ -191,3 +191,22 @@ def test_a_posture_target_names_only_the_robots_one_coordinate_joints(talos, sol
     with pytest.raises(TargetError, match=message):
         task.set_joint_targets(talos, {joint: 0.1})
     assert np.array_equal(task.target, before)
+
+
+@pytest.mark.parametrize("task_name", ["right_hand", "com"])
+@pytest.mark.parametrize("coordinate", [1e7, -1e300])
+def test_a_position_target_beyond_the_bound_is_refused(solver, task_name, coordinate):
+    """Finite but absurd: at 1e300 m the capped step overflowed to 0 and the level said
+    'met' with an infinite error."""
+    task = solver.task(task_name)
+    before = task.target
+    target = before.copy()
+    if task_name == "com":
+        target[0] = coordinate
+    else:
+        target.translation[0] = coordinate
+    with pytest.raises(TargetError, match="beyond 1e\\+06 m"):
+        task.set_target(target)
+    after = task.target
+    assert np.array_equal(getattr(after, "homogeneous", after),
+                          getattr(before, "homogeneous", before))

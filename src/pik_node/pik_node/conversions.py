@@ -10,16 +10,16 @@ import numpy as np
 from geometry_msgs.msg import Point, Polygon, Pose
 from rclpy.time import Time
 from stance.stack import AXES, FRAME_KINDS, KINDS, StackError, TaskSpec
-from stance.tasks import TargetError, pose_from_position_quaternion, require_finite
+from stance.tasks import (MAX_COORDINATE, TargetError, pose_from_position_quaternion,
+                          require_finite)
 from stance_msgs.msg import TaskSpec as TaskSpecMsg
 
 import pinocchio as pin
 
 WORLD_FRAMES = ("", "world")
-# m: the largest |x|, |y| or |z| a target or the base may have. Far beyond any workspace,
-# small enough that squares and products of positions stay finite (x = 1e308 passed the
-# NaN checks and then turned every residual and output into inf or NaN).
-MAX_POSITION = 1e6
+# m: the largest |x|, |y| or |z| a target or the base may have: the library's bound on
+# targets (tasks.MAX_COORDINATE), checked here too to name the message's field
+MAX_POSITION = MAX_COORDINATE
 KIND_CODES = {
     TaskSpecMsg.KIND_POSE: "pose",
     TaskSpecMsg.KIND_POSITION: "position",

@@ -23,11 +23,26 @@ class TargetError(ValueError):
     """A task target is malformed (non-finite, wrong size, unknown joint, bad quaternion)."""
 
 
+# m: the largest |x|, |y| or |z| of a position target (frame, CoM, support polygon). Far
+# beyond any workspace, small enough that squares and products of positions stay finite (a
+# target at x = 1e300 passed the NaN checks, its step overflowed to 0 and the level said
+# 'met' with an infinite error).
+MAX_COORDINATE = 1e6
+
+
 def require_finite(values, what: str) -> np.ndarray:
     array = np.asarray(values, dtype=float)
     if not np.all(np.isfinite(array)):
         raise TargetError(f"{what} contains NaN or infinite values")
     return array
+
+
+def require_within_reach(position, what: str) -> np.ndarray:
+    """position (m) if finite with no coordinate beyond MAX_COORDINATE, else TargetError."""
+    position = require_finite(position, what)
+    if np.any(np.abs(position) > MAX_COORDINATE):
+        raise TargetError(f"{what} has a coordinate beyond {MAX_COORDINATE:g} m")
+    return position
 
 
 def pose_from_position_quaternion(position, quaternion_xyzw, tolerance: float = 1e-3) -> pin.SE3:
@@ -246,6 +261,7 @@ class FrameTask(Task):
 
     def set_target(self, pose: pin.SE3) -> None:
         require_finite(pose.homogeneous, f"target of task {self.name!r}")
+        require_within_reach(pose.translation, f"target of task {self.name!r}")
         self.target = pose
 
     def full_error(self, robot, out=None) -> np.ndarray:
@@ -337,7 +353,7 @@ class ComTask(Task):
         self.target = robot.data.com[0].copy()
 
     def set_target(self, position) -> None:
-        position = require_finite(position, f"target of task {self.name!r}")
+        position = require_within_reach(position, f"target of task {self.name!r}")
         if position.shape != (3,):
             raise TargetError(f"CoM target must have 3 values, got {position.shape}")
         self.target = position.copy()
@@ -381,7 +397,6 @@ class SupportTask(Task):
     """
 
     max_step = 0.0  # no equality rows to cap
-    max_coordinate = 1e6  # m: |vertex coordinate| accepted
 
     def __init__(self, spec: TaskSpec, robot):
         super().__init__(spec, robot)
@@ -407,9 +422,9 @@ class SupportTask(Task):
         if points.ndim != 2 or points.shape[1] != 2 or len(points) < 3:
             raise TargetError(f"polygon of task {self.name!r} needs >= 3 xy vertices, "
                               f"got shape {points.shape}")
-        if np.abs(points).max() > self.max_coordinate:
+        if np.abs(points).max() > MAX_COORDINATE:
             raise TargetError(f"polygon of task {self.name!r} has a vertex beyond "
-                              f"{self.max_coordinate:g} m")
+                              f"{MAX_COORDINATE:g} m")
         try:
             hull = ConvexHull(points)
         except QhullError as error:
