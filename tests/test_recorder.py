@@ -328,3 +328,35 @@ def test_latched_history_gone_before_the_recorder_joined_is_not_a_loss():
     assert complete and "1 message(s) published before the recorder joined" in table
     for lost in (lost_live, lost_after_history):
         assert not summary_table(SimpleNamespace(topics={"a": lost}, skipped={}))[1]
+
+
+def test_a_publisher_the_recording_cannot_match_makes_it_incomplete(processes, tmp_path):
+    """The recorder subscribes with the QoS of the publishers present (latched: transient
+    local); a volatile publisher appearing later cannot match it and DDS delivers none of
+    its messages. The recording used to report itself complete (received = written)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from stance_tools.background_node import BackgroundNode
+
+    latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    volatile = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    node = BackgroundNode("qos_publishers")
+    try:
+        first = node.node.create_publisher(String, "/qos_test", latched)
+        node.start_spinning()
+        first.publish(String(data="latched"))
+        recorder = processes.start("stance", "record", "-o", str(tmp_path / "bag"),
+                                   "/qos_test", name="recorder")
+        wait_until(lambda: first.get_subscription_count() > 0, 30, what="the recorder")
+        second = node.node.create_publisher(String, "/qos_test", volatile)
+        wait_until(lambda: "incompatible" in log_text(recorder), 10,
+                   what="the recorder's incompatible-QoS report")
+        for index in range(5):
+            second.publish(String(data=f"volatile {index}"))
+        assert processes.stop(recorder) == 1, log_text(recorder)
+    finally:
+        node.close()
+    summary = log_text(recorder)
+    assert "1 publisher(s) offered a QoS incompatible with the recording's (durability" in \
+        summary, summary
+    assert "INCOMPLETE" in summary

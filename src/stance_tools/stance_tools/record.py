@@ -19,7 +19,10 @@ Design, chosen so that a recording never loses a message without saying so:
   /robot_description are captured even when published before the recorder started).
 - Every topic counts received, written and failed messages, and the samples the RMW reports
   lost (``message_lost`` QoS event); the summary printed at exit shows them and the exit code
-  is non-zero if anything was lost, failed to write, or could not be subscribed. On a latched
+  is non-zero if anything was lost, failed to write, or could not be subscribed, or if a
+  publisher that appeared later offered a QoS the subscription cannot match (``incompatible
+  QoS`` event: a volatile publisher on a topic subscribed transient local, a best-effort one
+  on a reliable subscription; DDS then delivers none of its messages). On a latched
   topic with one publisher, messages published before the recorder joined and no longer in
   that publisher's history are reported by DDS as lost: they are listed, not counted.
 
@@ -51,7 +54,8 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile,
+                       ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
 
 ROSBAG2_METADATA_VERSION = 9  # rosbag2 in Jazzy
@@ -267,6 +271,8 @@ class TopicCounters:
     single_latched_publisher: bool = False
     first_sequence: int | None = None
     unread_at_exit: bool = False   # its reader still held messages after STOP_DRAIN_SECONDS
+    incompatible_publishers: int = 0   # publishers DDS did not match (incompatible QoS)
+    incompatible_policy: str = ""      # the last policy that did not match
 
     def lost_before_joining(self) -> int:
         """Reported losses that are messages published before the recorder joined and no
@@ -330,15 +336,18 @@ class Recorder:
         counters = TopicCounters(name, type_name, single_latched_publisher=(
             len(publishers) == 1 and qos.durability == DurabilityPolicy.TRANSIENT_LOCAL))
         callback = partial(self._on_message, counters)
+        events = {"incompatible_qos": partial(self._on_incompatible, counters),
+                  "message_lost": partial(self._on_lost, counters)}
         try:
             counters.subscription = self._node.create_subscription(
                 msg_class, name, callback, qos, raw=True,
-                event_callbacks=SubscriptionEventCallbacks(
-                    message_lost=partial(self._on_lost, counters)))
+                event_callbacks=SubscriptionEventCallbacks(**events))
         except UnsupportedEventTypeError:
             counters.lost = None
+            del events["message_lost"]
             counters.subscription = self._node.create_subscription(
-                msg_class, name, callback, qos, raw=True)
+                msg_class, name, callback, qos, raw=True,
+                event_callbacks=SubscriptionEventCallbacks(**events))
         self.topics[name] = counters
         log.info(f"recording {name} [{type_name}] {qos.reliability.name.lower()} "
                  f"{qos.durability.name.lower()}")
@@ -372,6 +381,13 @@ class Recorder:
             f"{counters.name}: DDS reports messages lost ({status.total_count} in total; "
             f"the summary tells those published before the recorder joined)",
             throttle_duration_sec=1.0)
+
+    def _on_incompatible(self, counters, status):
+        counters.incompatible_publishers = status.total_count
+        counters.incompatible_policy = QoSPolicyKind(status.last_policy_kind).name.lower()
+        self._node.get_logger().error(
+            f"{counters.name}: a publisher offers a QoS incompatible with the recording's "
+            f"({counters.incompatible_policy}): none of its messages will be recorded")
 
     def _write_loop(self):
         while (item := self._queue.get()) is not None:
@@ -431,7 +447,13 @@ def summary_table(recorder):
         rows.append((counters.name, counters.type, str(counters.received), str(counters.written),
                      "n/a" if lost is None else str(lost), str(counters.failed)))
         complete &= (counters.written == counters.received and not counters.failed
-                     and not lost and not counters.unread_at_exit)
+                     and not lost and not counters.unread_at_exit
+                     and not counters.incompatible_publishers)
+        if counters.incompatible_publishers:
+            notes.append(f"{counters.name}: {counters.incompatible_publishers} publisher(s) "
+                         f"offered a QoS incompatible with the recording's "
+                         f"({counters.incompatible_policy}; it follows the publishers present "
+                         f"when the topic was subscribed): their messages are not recorded")
         if counters.unread_at_exit:
             notes.append(f"{counters.name}: messages still arrived faster than they were "
                          f"taken {STOP_DRAIN_SECONDS:g} s after the stop; the rest is not "
