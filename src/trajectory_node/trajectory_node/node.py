@@ -337,15 +337,11 @@ class TrajectoryNode(Node):
             self.get_logger().info("plan received again: ignored")
             return
         self._last_plan = msg
-        try:    # checked here, so that a plan to reject never supersedes one under way
+        # checked here, so that a plan to reject never supersedes one under way
+        try:
             stamp = time_from_msg(msg.header.stamp, "header.stamp")
-            plan, scene = plan_from_msg(msg, self.robot, self.robot_spec)
         except ValueError as error:
-            if self._state in ("interpolating", "executing"):
-                self._status(self._state, f"a newer plan was rejected ({error}); this one "
-                                          "goes on")
-            else:
-                self._status("failed", f"plan rejected: {error}")
+            self._reject_plan(error)
             return
         if not self.execute_latched_plan and 0 < stamp.nanoseconds < self._started.nanoseconds:
             self._status("idle", f"plan on scene {msg.scene!r} stamped "
@@ -353,9 +349,22 @@ class TrajectoryNode(Node):
                                  "this node started: not executed (publish it again, or set "
                                  "execute_latched_plan)")
             return
+        try:
+            plan, scene = plan_from_msg(msg, self.robot, self.robot_spec)
+        except ValueError as error:
+            self._reject_plan(error)
+            return
         with self._wakeup:
             self._pending = (msg, plan, scene)
             self._wakeup.notify()
+
+    def _reject_plan(self, error):
+        """A plan that fails its conversion: `failed` when none is under way, else said in
+        the status of the one interpolated or executed, which goes on."""
+        if self._state in ("interpolating", "executing"):
+            self._status(self._state, f"a newer plan was rejected ({error}); this one goes on")
+        else:
+            self._status("failed", f"plan rejected: {error}")
 
     def _has_pending(self) -> bool:
         with self._wakeup:
