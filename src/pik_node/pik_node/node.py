@@ -43,19 +43,17 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, PolygonStamped, PoseStamped
 from rcl_interfaces.msg import (FloatingPointRange, ParameterDescriptor,
                                 SetParametersResult)
-from rclpy.exceptions import (InvalidParameterTypeException, InvalidTopicNameException,
-                               ParameterException)
+from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
-from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
 from stance.limits import STRATEGIES
 from stance.pik import HIERARCHIES, LM_DAMPING, demo_stack_file
-from stance.stack import parse_stack_yaml, validate_stack
+from stance.stack import parse_stack_yaml
 from stance.swing import LimitFileError, limit_file_path, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
@@ -253,13 +251,10 @@ class PikNode(Node):
         try:
             specs = [spec_from_msg(msg) for msg in request.tasks]
             check_task_frames(self.robot, specs)
-            validate_stack(specs, self.robot.model.existFrame)  # names first, then topics:
-            for spec in specs:      # checked before the stack changes, its subscriptions follow
-                validate_full_topic_name(target_topic(spec.name))
             with self._lock:
                 self.solver.set_stack(specs, self.q)
                 self._status_template = None
-        except (StackError, RobotModelError, InvalidTopicNameException) as error:
+        except (StackError, RobotModelError) as error:
             response.success, response.message = False, f"stack rejected: {error}"
             self._reject(response.message)
             return response
