@@ -391,22 +391,30 @@ def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat_st
     assert node.poll() is None
 
 
-def test_a_plan_to_reject_never_supersedes_the_one_under_way(graph, flat_steps_plan):
-    """A plan that fails its conversion (a NaN witness) arriving during an execution is
-    rejected at once; the execution goes on to its last stance. It used to take over at
-    the end of the transition, then fail: the robot stopped halfway."""
+@pytest.mark.parametrize("failure, reason", [
+    ("conversion", "stances[1].witness"),             # a NaN witness, refused on arrival
+    ("verification", "fails verification"),           # a witness off its contacts
+])
+def test_a_plan_to_reject_never_supersedes_the_one_under_way(graph, flat_steps_plan, failure,
+                                                             reason):
+    """A plan that fails its conversion or its verification arriving during an execution
+    is rejected; the execution goes on to its last stance. Each used to take over at the
+    end of the transition, then fail: the robot stopped halfway."""
     node, probe = graph
     robot, scene, plan = flat_steps_plan
     short = Plan(plan.scene, plan.robot, plan.stances[:5])
     bad = plan_msg(robot, scene, plan)
-    bad.stances[1].witness_base_pose.position.x = math.nan
+    if failure == "conversion":
+        bad.stances[1].witness_base_pose.position.x = math.nan
+    else:
+        bad.stances[1].witness_base_pose.position.x += 0.05   # m: every spot moves with it
     counts = probe.counts()
     probe.publish_plan(plan_msg(robot, scene, short))
     wait_until(lambda: len(probe.since(counts)[1]) >= 3, 60, what="stance 2 announced")
     probe.publish_plan(bad)
     statuses = probe.wait_status(counts, "done", 90)
     assert any(status.startswith("executing: a newer plan was rejected") and
-               "stances[1].witness" in status for status in statuses), statuses
+               reason in status for status in statuses), statuses
     assert not any("superseded" in status for status in statuses), statuses
     assert statuses[-1] == f"done: reached stance 4 of scene {plan.scene!r}"
     assert node.poll() is None

@@ -53,17 +53,18 @@ s late (streaming paused Y s for pik_node)`). If pik_node does not come back in 
 refuses the re-sent configuration or stack, the plan ends in `failed: execution stopped:
 pik_node ...` and the node waits for the next one.
 
-A new plan while one executes: the current transition is finished (the robot is then at
-rest on a witness: every stance boundary is a contact event), then the new plan starts
-from its own first witness (a jump if it does not start there). A plan arriving while
-another is interpolated replaces it. Every plan is verified first (stance.planning.verify,
-what `stance check-plan` runs: contacts, collisions, joint limits, static equilibrium, one
-contact change per stance); one that fails is rejected with its first failures. A plan that
-cannot be converted, verified, interpolated or executed is reported (status `failed`, log)
-and the node waits for the next one; pik_node then holds its last targets. Conversion (the
-fields, the header stamp) is checked on arrival: a plan that fails it never supersedes the
-one interpolated or executed, which goes on (its state, with the rejection, in the
-status). A plan stamped
+Plans are prepared (converted, verified, interpolated and timed) on one thread and executed
+on another. Every plan is verified (stance.planning.verify, what `stance check-plan` runs:
+contacts, collisions, joint limits, static equilibrium, one contact change per stance); one
+that fails is rejected with its first failures. A new plan while one executes is prepared
+meanwhile; once it is ready, the current transition is finished (the robot is then at rest
+on a witness: every stance boundary is a contact event), then the new plan starts from its
+own first witness (a jump if it does not start there). A plan arriving while another is
+prepared replaces it if it is ready in turn. A plan that cannot be converted, verified,
+interpolated or executed is reported and never supersedes the plan under way, which goes
+on (its state, with the rejection, in the status); with none under way the status says
+`failed` (and the log), the node waits for the next one and pik_node holds its last
+targets. A plan stamped
 before the node started (the latched last plan, found at start-up) is not executed unless
 `execute_latched_plan` is true: a node restarted by `stance graph` must not replay the last
 plan from its first witness; the status says so. A plan equal to the last one received
@@ -96,6 +97,7 @@ import sys
 import threading
 import time
 import traceback
+from typing import NamedTuple
 
 import pinocchio as pin
 from contact_planner_node.conversions import actuated_q_index
@@ -110,12 +112,16 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
-from stance.execution.interpolation import InterpolationError, TransitionPlanner
-from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
+from stance.execution.interpolation import (InterpolatedPlan, InterpolationError,
+                                           TransitionPlanner)
+from stance.execution.timing import (Trajectory, sinusoidal_trajectory,
+                                     time_optimal_trajectory)
 from stance.execution.tracking import (ARRIVAL_COM_TOLERANCE, ARRIVAL_TIMEOUT,
                                        ARRIVAL_TOLERANCE, GAINS, ArrivalGate, task_targets,
                                        transition_tasks, witness_com)
 from stance.planning.collision import CollisionModel
+from stance.planning.contacts import Plan
+from stance.planning.scene import Scene
 from stance.planning.verify import verify_plan
 from stance_msgs.msg import ContactStance, SolverStatus, StancePlan
 from stance_msgs.srv import SetConfiguration, SetStack
@@ -153,6 +159,18 @@ class ExecutionError(RuntimeError):
 
 class PikLost(ExecutionError):
     """pik_node went silent or restarted during execution (PikWatch)."""
+
+
+class Prepared(NamedTuple):
+    """A plan ready to execute: the message, its plan and scene, the transition planner
+    that interpolated it, the path and its timed trajectory."""
+
+    msg: StancePlan
+    plan: Plan
+    scene: Scene
+    planner: TransitionPlanner
+    path: InterpolatedPlan
+    trajectory: Trajectory
 
 
 class PikWatch:
@@ -277,12 +295,15 @@ class TrajectoryNode(Node):
                                                            "/pik/set_configuration")
         self.set_stack_client = self.create_client(SetStack, "/pik/set_stack")
         self._target_pubs = {}
-        self._pending = None                  # newest (StancePlan, Plan, Scene) not yet taken
+        self._arrival = None                  # newest (StancePlan, Plan, Scene) to prepare
+        self._pending = None                  # newest Prepared plan, not executed yet
+        self._executing = False               # the executor has a plan under way
         self._last_plan = None                # last StancePlan received
-        self._wakeup = threading.Condition()
+        self._wakeup = threading.Condition()  # guards the three above
         self._stop = threading.Event()
-        self._worker = threading.Thread(target=self._run, name="trajectory_worker",
-                                        daemon=True)
+        self._workers = [threading.Thread(target=target, name=name, daemon=True)
+                         for target, name in ((self._prepare_plans, "trajectory_preparer"),
+                                              (self._run, "trajectory_worker"))]
         self.create_subscription(StancePlan, PLAN_TOPIC, self._on_plan, LATCHED)
         self._status("idle", "waiting for a plan")
 
@@ -331,7 +352,7 @@ class TrajectoryNode(Node):
     # --- inputs and worker ----------------------------------------------------------------
 
     def _on_plan(self, msg: StancePlan):
-        """Keep the newest plan for the worker; one equal to the last received (a latched
+        """Keep the newest plan for the preparer; one equal to the last received (a latched
         plan delivered again) is ignored."""
         if msg == self._last_plan:
             self.get_logger().info("plan received again: ignored")
@@ -355,13 +376,15 @@ class TrajectoryNode(Node):
             self._reject_plan(error)
             return
         with self._wakeup:
-            self._pending = (msg, plan, scene)
-            self._wakeup.notify()
+            self._arrival = (msg, plan, scene)
+            self._wakeup.notify_all()
 
-    def _reject_plan(self, error):
-        """A plan that fails its conversion: `failed` when none is under way, else said in
-        the status of the one interpolated or executed, which goes on."""
-        if self._state in ("interpolating", "executing"):
+    def _reject_plan(self, error, goes_on: bool | None = None):
+        """A plan rejected: said in the status of the one interpolated or executed when
+        another `goes_on` (default: one is, by the state), else `failed`."""
+        if goes_on is None:
+            goes_on = self._state in ("interpolating", "executing")
+        if goes_on:
             self._status(self._state, f"a newer plan was rejected ({error}); this one goes on")
         else:
             self._status("failed", f"plan rejected: {error}")
@@ -371,57 +394,95 @@ class TrajectoryNode(Node):
             return self._pending is not None
 
     def start_worker(self):
-        self._worker.start()
+        for worker in self._workers:
+            worker.start()
 
     def stop_worker(self):
         self._stop.set()
         with self._wakeup:
-            self._wakeup.notify()
-        self._worker.join(timeout=2.0)
+            self._wakeup.notify_all()
+        for worker in self._workers:
+            worker.join(timeout=2.0)
 
     def destroy_node(self):
         self._pik.destroy()
         super().destroy_node()
 
-    def _run(self):
-        """Worker: one plan after the other; an unexpected error fails that plan only."""
+    def _prepare_plans(self):
+        """Preparer: the newest arrival verified, interpolated and timed, then handed to the
+        executor, unless a newer one arrived meanwhile: that one is prepared first, and
+        replaces it if it is ready in turn (a rejected one leaves it to go on)."""
+        ready = None    # a Prepared plan kept until the arrival after it is prepared
         while not self._stop.is_set():
             with self._wakeup:
-                while self._pending is None and not self._stop.is_set():
+                while self._arrival is None and ready is None and not self._stop.is_set():
                     self._wakeup.wait()
-                pending, self._pending = self._pending, None
-            if pending is None:
-                continue
+                arrival, self._arrival = self._arrival, None
+                if arrival is None:
+                    if ready is not None:
+                        self._pending, ready = ready, None
+                        self._wakeup.notify_all()
+                    continue
+                goes_on = ready is not None or self._executing or self._pending is not None
             try:
-                self._process(*pending)
+                prepared = self._prepare(*arrival, goes_on)
             except Exception as error:  # noqa: BLE001 - the node must keep serving plans
                 if self._stop.is_set():
                     return
                 self.get_logger().error(traceback.format_exc())
-                self._status("failed", f"internal error: {error!r}")
+                self._reject_plan(f"internal error: {error!r}", goes_on)
+                continue
+            if prepared is not None:
+                if ready is not None:
+                    self.get_logger().info("a newer plan arrived during interpolation: it "
+                                           "replaces this one")
+                ready = prepared
 
-    def _process(self, msg: StancePlan, plan, scene):
-        """Verify, interpolate, time and execute one plan (plan, scene: msg's, converted);
-        failures end in `failed`."""
-        self._status("interpolating", f"plan of {len(msg.stances)} stances on scene "
-                                      f"{msg.scene!r}, n = {self.steps}")
+    def _prepare(self, msg: StancePlan, plan, scene, goes_on: bool):
+        """The Prepared plan (plan, scene: msg's, converted), None when rejected (said in
+        the status, `failed` unless another plan `goes_on`)."""
+        what = f"plan of {len(msg.stances)} stances on scene {msg.scene!r}, n = {self.steps}"
+        if not goes_on:
+            self._status("interpolating", what)
+        elif self._state == "executing":
+            self._status("executing", f"a newer {what} is being prepared: it takes over at "
+                                      "the end of a transition once ready")
+        else:
+            self._status(self._state, f"a newer {what} is being prepared: it replaces this "
+                                      "one once ready")
         try:
             _require_verified(plan, scene, self.robot)
             planner = TransitionPlanner(self.robot, scene, CollisionModel(self.robot, scene),
                                         steps=self.steps)
             path = planner.interpolate(plan)
         except (ValueError, InterpolationError) as error:
-            self._status("failed", f"plan rejected: {error}")
-            return
-        trajectory = self._time(path)
-        if self._has_pending():
-            self.get_logger().info("a newer plan arrived during interpolation: it replaces "
-                                   "this one")
-            return
-        try:
-            self._execute(msg, plan, scene, planner, path, trajectory)
-        except ExecutionError as error:
-            self._status("failed", f"execution stopped: {error}")
+            self._reject_plan(error, goes_on)
+            return None
+        return Prepared(msg, plan, scene, planner, path, self._time(path))
+
+    def _run(self):
+        """Executor: one prepared plan after the other; an unexpected error fails that
+        plan only."""
+        while not self._stop.is_set():
+            with self._wakeup:
+                while self._pending is None and not self._stop.is_set():
+                    self._wakeup.wait()
+                pending, self._pending = self._pending, None
+                self._executing = pending is not None
+            if pending is None:
+                continue
+            try:
+                self._execute(*pending)
+            except ExecutionError as error:
+                self._status("failed", f"execution stopped: {error}")
+            except Exception as error:  # noqa: BLE001 - the node must keep serving plans
+                if self._stop.is_set():
+                    return
+                self.get_logger().error(traceback.format_exc())
+                self._status("failed", f"internal error: {error!r}")
+            finally:
+                with self._wakeup:
+                    self._executing = False
 
     def _time(self, path):
         if self.timing == "sinusoidal":
