@@ -35,11 +35,11 @@ from pathlib import Path
 
 import numba
 import numpy as np
-import yaml
 
 from .hierarchy import _damped_least_squares
 from .limits import (NEGLIGIBLE_VARIATION, LimitDecision, RevoluteLimits, keep_inside_bounds,
                      cubic_step, decision_by_fixing, fix_joints)
+from .yaml_file import load_yaml_file
 
 OUTSIDE_TOLERANCE = 1e-9   # rad: a state this close outside a limit counts as on it
 Z_AXIS = np.array([0.0, 0.0, 1.0])
@@ -1082,11 +1082,5 @@ def load_limit_file(path, robot) -> list:
             twist: [min, max]               # ball; swing: free (default) | locked
     """
     path = limit_file_path(path)
-    try:
-        document = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as error:
-        raise LimitFileError(f"{path}: not a YAML text file (not UTF-8: byte {error.start})") \
-            from error
-    except yaml.YAMLError as error:
-        raise LimitFileError(f"{path}: not valid YAML: {error}") from error
+    document = load_yaml_file(path, LimitFileError)
     return parse_limits(document, robot)

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-import yaml
 
+from ..yaml_file import load_yaml_file
 
 DEFAULT_POTENTIAL_SLOPE = 10.0
 
@@ -145,13 +145,7 @@ def load_scene(spec: str, robot=None) -> Scene:
     if not path.is_file():
         raise SceneError(f"unknown scene {spec!r}: neither a shipped scene "
                          f"({', '.join(scene_names())}) nor a file")
-    try:
-        document = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as error:
-        raise SceneError(f"{path}: not a YAML text file (not UTF-8: byte {error.start})") \
-            from error
-    except yaml.YAMLError as error:
-        raise SceneError(f"{path}: not valid YAML: {error}") from error
+    document = load_yaml_file(path, SceneError)
     return parse_scene(document, str(path), robot)
 
 
