@@ -1,10 +1,11 @@
 """trajectory_node: contact plans interpolated, timed and executed through pik_node (Escande
 et al. 2008, sections 3.3 and 4), as a ROS 2 node.
 
-Thin adapter over stance.execution: a worker thread (the executor keeps serving) converts
-each new plan, interpolates it (TransitionPlanner, `samples_per_transition` postures per
-transition), times it (`timing`: sinusoidal, the paper's, under `velocity_scale` times the
-URDF speed limits; or time_optimal, also under `acceleration_limit`), then executes it:
+Thin adapter over stance.execution: each new plan is converted on arrival; a preparer
+thread verifies it, interpolates it (TransitionPlanner, `samples_per_transition` postures
+per transition) and times it (`timing`: sinusoidal, the paper's, under `velocity_scale`
+times the URDF speed limits; or time_optimal, also under `acceleration_limit`), then an
+executor thread executes it (the rclpy executor keeps serving):
 - the whole timed trajectory goes out once as a JointTrajectory (actuated 1-DoF joints,
   positions and velocities at the interpolated samples) for users' controllers;
 - pik_node jumps to the first witness (/pik/set_configuration), then gets per transition a
@@ -53,18 +54,22 @@ s late (streaming paused Y s for pik_node)`). If pik_node does not come back in 
 refuses the re-sent configuration or stack, the plan ends in `failed: execution stopped:
 pik_node ...` and the node waits for the next one.
 
-Plans are prepared (converted, verified, interpolated and timed) on one thread and executed
-on another. Every plan is verified (stance.planning.verify, what `stance check-plan` runs:
+Plans are converted on arrival, prepared (verified, interpolated and timed) on one thread
+and executed on another. Every plan is verified (stance.planning.verify, what `stance check-plan` runs:
 contacts, collisions, joint limits, static equilibrium, one contact change per stance); one
 that fails is rejected with its first failures. A new plan while one executes is prepared
-meanwhile; once it is ready, the current transition is finished (the robot is then at rest
-on a witness: every stance boundary is a contact event), then the new plan starts from its
-own first witness (a jump if it does not start there). A plan arriving while another is
-prepared replaces it if it is ready in turn. A plan that cannot be converted, verified,
-interpolated or executed is reported and never supersedes the plan under way, which goes
-on (its state, with the rejection, in the status); with none under way the status says
-`failed` (and the log), the node waits for the next one and pik_node holds its last
-targets. A plan stamped
+meanwhile (its verification and collision models hold the GIL up to ~60 ms at a time:
+a tick or two come late, and the motion slows down by as much); once it is ready, the
+transition in progress is finished (the robot is then at rest on a witness: every stance
+boundary is a contact event), then the new plan starts from its own first witness (a jump
+if it does not start there); if the plan under way ends first, the new one starts when
+ready. Its statuses meanwhile keep the state of the plan under way (`executing: a newer
+plan ... is being prepared ...`). A plan arriving while another is prepared replaces it
+if it is ready in turn. A plan that cannot be converted, verified, interpolated or
+executed is reported and never supersedes a plan under way or ready, which goes on even
+though a newer one was sent (the status says so, with the rejection); with none, the
+status says `failed` (and the log), the node waits for the next one and pik_node holds its
+last targets. A plan stamped
 before the node started (the latched last plan, found at start-up) is not executed unless
 `execute_latched_plan` is true: a node restarted by `stance graph` must not replay the last
 plan from its first witness; the status says so. A plan equal to the last one received
@@ -296,10 +301,15 @@ class TrajectoryNode(Node):
         self.set_stack_client = self.create_client(SetStack, "/pik/set_stack")
         self._target_pubs = {}
         self._arrival = None                  # newest (StancePlan, Plan, Scene) to prepare
+        self._preparing = False               # the preparer works on an arrival
+        self._ready = None                    # a Prepared plan held while a newer is prepared
         self._pending = None                  # newest Prepared plan, not executed yet
         self._executing = False               # the executor has a plan under way
         self._last_plan = None                # last StancePlan received
-        self._wakeup = threading.Condition()  # guards the three above
+        self._wakeup = threading.Condition()  # guards the five above
+        # a status decided from those flags and the last one published goes out before any
+        # other (taken before _wakeup, never while holding it)
+        self._status_lock = threading.RLock()
         self._stop = threading.Event()
         self._workers = [threading.Thread(target=target, name=name, daemon=True)
                          for target, name in ((self._prepare_plans, "trajectory_preparer"),
@@ -362,7 +372,7 @@ class TrajectoryNode(Node):
         try:
             stamp = time_from_msg(msg.header.stamp, "header.stamp")
         except ValueError as error:
-            self._reject_plan(error)
+            self._reject_plan(error, preparing_goes_on=True)
             return
         if not self.execute_latched_plan and 0 < stamp.nanoseconds < self._started.nanoseconds:
             self._status("idle", f"plan on scene {msg.scene!r} stamped "
@@ -373,21 +383,27 @@ class TrajectoryNode(Node):
         try:
             plan, scene = plan_from_msg(msg, self.robot, self.robot_spec)
         except ValueError as error:
-            self._reject_plan(error)
+            self._reject_plan(error, preparing_goes_on=True)
             return
         with self._wakeup:
             self._arrival = (msg, plan, scene)
             self._wakeup.notify_all()
 
-    def _reject_plan(self, error, goes_on: bool | None = None):
-        """A plan rejected: said in the status of the one interpolated or executed when
-        another `goes_on` (default: one is, by the state), else `failed`."""
-        if goes_on is None:
-            goes_on = self._state in ("interpolating", "executing")
-        if goes_on:
-            self._status(self._state, f"a newer plan was rejected ({error}); this one goes on")
-        else:
-            self._status("failed", f"plan rejected: {error}")
+    def _reject_plan(self, error, preparing_goes_on: bool):
+        """A plan rejected, decided at once from what goes on instead: the plan executed, a
+        plan prepared (ready, or handed over and not yet taken), or when
+        `preparing_goes_on` (the rejected plan is not the preparer's own) one the preparer
+        works on; `failed` when none does."""
+        with self._status_lock:
+            executing, prepared = self._under_way(preparing_goes_on)
+            if executing:
+                self._status("executing", f"a newer plan was rejected ({error}); this one "
+                                          "goes on")
+            elif prepared:
+                self._status("interpolating", f"a newer plan was rejected ({error}); the "
+                                              "plan received before it goes on")
+            else:
+                self._status("failed", f"plan rejected: {error}")
 
     def _has_pending(self) -> bool:
         with self._wakeup:
@@ -412,51 +428,55 @@ class TrajectoryNode(Node):
         """Preparer: the newest arrival verified, interpolated and timed, then handed to the
         executor, unless a newer one arrived meanwhile: that one is prepared first, and
         replaces it if it is ready in turn (a rejected one leaves it to go on)."""
-        ready = None    # a Prepared plan kept until the arrival after it is prepared
         while not self._stop.is_set():
             with self._wakeup:
-                while self._arrival is None and ready is None and not self._stop.is_set():
+                while self._arrival is None and self._ready is None and \
+                        not self._stop.is_set():
                     self._wakeup.wait()
                 arrival, self._arrival = self._arrival, None
                 if arrival is None:
-                    if ready is not None:
-                        self._pending, ready = ready, None
+                    if self._ready is not None:
+                        self._pending, self._ready = self._ready, None
                         self._wakeup.notify_all()
                     continue
-                goes_on = ready is not None or self._executing or self._pending is not None
+                self._preparing = True
             try:
-                prepared = self._prepare(*arrival, goes_on)
+                prepared = self._prepare(*arrival)
             except Exception as error:  # noqa: BLE001 - the node must keep serving plans
                 if self._stop.is_set():
                     return
                 self.get_logger().error(traceback.format_exc())
-                self._reject_plan(f"internal error: {error!r}", goes_on)
-                continue
-            if prepared is not None:
-                if ready is not None:
-                    self.get_logger().info("a newer plan arrived during interpolation: it "
-                                           "replaces this one")
-                ready = prepared
+                prepared = None
+                self._reject_plan(f"internal error: {error!r}", preparing_goes_on=False)
+            with self._wakeup:
+                self._preparing = False
+                if prepared is not None:
+                    if self._ready is not None:
+                        self.get_logger().info("a newer plan arrived during interpolation: "
+                                               "it replaces this one")
+                    self._ready = prepared
 
-    def _prepare(self, msg: StancePlan, plan, scene, goes_on: bool):
+    def _prepare(self, msg: StancePlan, plan, scene):
         """The Prepared plan (plan, scene: msg's, converted), None when rejected (said in
-        the status, `failed` unless another plan `goes_on`)."""
+        the status: _reject_plan)."""
         what = f"plan of {len(msg.stances)} stances on scene {msg.scene!r}, n = {self.steps}"
-        if not goes_on:
-            self._status("interpolating", what)
-        elif self._state == "executing":
-            self._status("executing", f"a newer {what} is being prepared: it takes over at "
-                                      "the end of a transition once ready")
-        else:
-            self._status(self._state, f"a newer {what} is being prepared: it replaces this "
-                                      "one once ready")
+        with self._status_lock:
+            executing, prepared = self._under_way(False)
+            if executing:
+                self._status("executing", f"a newer {what} is being prepared: it takes over "
+                                          "at the end of a transition once ready")
+            elif prepared:
+                self._status("interpolating", f"a newer {what} is being prepared: it "
+                                              "replaces the one received before it once ready")
+            else:
+                self._status("interpolating", what)
         try:
             _require_verified(plan, scene, self.robot)
             planner = TransitionPlanner(self.robot, scene, CollisionModel(self.robot, scene),
                                         steps=self.steps)
             path = planner.interpolate(plan)
         except (ValueError, InterpolationError) as error:
-            self._reject_plan(error, goes_on)
+            self._reject_plan(error, preparing_goes_on=False)
             return None
         return Prepared(msg, plan, scene, planner, path, self._time(path))
 
@@ -740,13 +760,24 @@ class TrajectoryNode(Node):
         return response
 
     def _status(self, state: str, message: str):
-        self._state = state
-        text = f"{state}: {message}"
-        self.status_pub.publish(String(data=text))
-        if state == "failed":
-            self.get_logger().error(text)
-        else:
-            self.get_logger().info(text)
+        with self._status_lock:
+            self._state = state
+            text = f"{state}: {message}"
+            self.status_pub.publish(String(data=text))
+            if state == "failed":
+                self.get_logger().error(text)
+            else:
+                self.get_logger().info(text)
+
+    def _under_way(self, preparing_counts: bool) -> tuple:
+        """(a plan executed, a plan prepared: ready, handed over and not taken yet, or when
+        `preparing_counts` one the preparer works on), from the flags and the last status
+        (an execution that said `done` or `failed` is over); call holding _status_lock."""
+        with self._wakeup:
+            executing = self._executing and self._state not in ("done", "failed")
+            prepared = self._ready is not None or self._pending is not None or \
+                (preparing_counts and self._preparing)
+        return executing, prepared
 
 
 def _require_verified(plan, scene, robot, shown: int = 3) -> None:
