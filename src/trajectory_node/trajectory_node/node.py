@@ -55,9 +55,9 @@ refuses the re-sent configuration or stack, the plan ends in `failed: execution 
 pik_node ...` and the node waits for the next one.
 
 Plans are converted on arrival, prepared (verified, interpolated and timed) on one thread
-and executed on another. Every plan is verified (stance.planning.verify, what `stance check-plan` runs:
-contacts, collisions, joint limits, static equilibrium, one contact change per stance); one
-that fails is rejected with its first failures. A new plan while one executes is prepared
+and executed on another. Every plan is verified (stance.planning.verify, what `stance
+check-plan` runs: contacts, collisions, joint limits, static equilibrium, one contact
+change per stance); one that fails is rejected with its first failures. A new plan while one executes is prepared
 meanwhile (its verification and collision models hold the GIL up to ~60 ms at a time:
 a tick or two come late, and the motion slows down by as much); once it is ready, the
 transition in progress is finished (the robot is then at rest on a witness: every stance
