@@ -57,23 +57,22 @@ pik_node ...` and the node waits for the next one.
 Plans are converted on arrival, prepared (verified, interpolated and timed) on one thread
 and executed on another. Every plan is verified (stance.planning.verify, what `stance
 check-plan` runs: contacts, collisions, joint limits, static equilibrium, one contact
-change per stance); one that fails is rejected with its first failures. A new plan while one executes is prepared
-meanwhile (its verification and collision models hold the GIL up to ~60 ms at a time:
-a tick or two come late, and the motion slows down by as much); once it is ready, the
-transition in progress is finished (the robot is then at rest on a witness: every stance
-boundary is a contact event), then the new plan starts from its own first witness (a jump
-if it does not start there); if the plan under way ends first, the new one starts when
-ready. Its statuses meanwhile keep the state of the plan under way (`executing: a newer
-plan ... is being prepared ...`). A plan arriving while another is prepared replaces it
-if it is ready in turn. A plan that cannot be converted, verified, interpolated or
-executed is reported and never supersedes a plan under way or ready, which goes on even
-though a newer one was sent (the status says so, with the rejection); with none, the
-status says `failed` (and the log), the node waits for the next one and pik_node holds its
-last targets. A plan stamped
-before the node started (the latched last plan, found at start-up) is not executed unless
-`execute_latched_plan` is true: a node restarted by `stance graph` must not replay the last
-plan from its first witness; the status says so. A plan equal to the last one received
-(header stamp included) is ignored.
+change per stance); one that fails is rejected with its first failures. A new plan while
+one executes is prepared meanwhile (its verification and collision models hold the GIL up
+to ~60 ms at a time: a tick or two come late, and the motion slows down by as much); once
+it is ready, the transition in progress is finished (the robot is then at rest on a
+witness: every stance boundary is a contact event), then the new plan starts from its own
+first witness (a jump if it does not start there); if the plan under way ends first, the
+new one starts when ready. Its statuses meanwhile keep the state of the plan under way
+(`executing: a newer plan ... is being prepared ...`). A plan arriving while another is
+prepared replaces it if it is ready in turn. A plan that cannot be converted, verified,
+interpolated or executed is reported and never supersedes a plan under way or ready, which
+goes on even though a newer one was sent (the status says so, with the rejection); with
+none, the status says `failed` (and the log), the node waits for the next one and pik_node
+holds its last targets. A plan stamped before the node started (the latched last plan,
+found at start-up) is not executed unless `execute_latched_plan` is true: a node restarted
+by `stance graph` must not replay the last plan from its first witness; the status says so.
+A plan equal to the last one received (header stamp included) is ignored.
 
 Topics and services (QoS in parentheses):
   sub  /contact_planner/plan         stance_msgs/StancePlan (reliable, transient local)
@@ -84,11 +83,13 @@ Topics and services (QoS in parentheses):
                                      out again when reached
   pub  /trajectory/status            std_msgs/String "<state>: <message>", state idle |
                                      interpolating | executing | done | failed (reliable,
-                                     transient local)
+                                     transient local, the last STATUS_HISTORY)
   pub  /pik/tasks/<name>/target      PoseStamped | PointStamped (com) | JointState (posture)
+                                     (reliable, keep last 10)
   sub  /pik/status                   stance_msgs/SolverStatus (best effort, keep last 1),
                                      pik_node's liveness and its tasks' frames (PikWatch,
-                                     a private node <name>_pik_watch the worker polls)
+                                     a private node <name>_pik_watch the executor thread
+                                     polls)
   cli  /pik/set_configuration, /pik/set_stack: a call waits at most `service_timeout` s
                                      for the service and its answer together, the
                                      request sent again each RESEND_PERIOD s
@@ -180,7 +181,7 @@ class Prepared(NamedTuple):
 
 class PikWatch:
     """pik_node's liveness during an execution (between arm() and disarm()), from its
-    /pik/status stream; used by the worker thread only.
+    /pik/status stream; used by the executor thread only.
 
     Why this signal: a SIGKILLed pik_node stays in the DDS graph until its lease expires
     (Fast DDS: 20 s), so neither graph queries nor wait_for_service notice it; its status,
@@ -313,7 +314,7 @@ class TrajectoryNode(Node):
         self._stop = threading.Event()
         self._workers = [threading.Thread(target=target, name=name, daemon=True)
                          for target, name in ((self._prepare_plans, "trajectory_preparer"),
-                                              (self._run, "trajectory_worker"))]
+                                              (self._run, "trajectory_executor"))]
         self.create_subscription(StancePlan, PLAN_TOPIC, self._on_plan, LATCHED)
         self._status("idle", "waiting for a plan")
 
@@ -359,7 +360,7 @@ class TrajectoryNode(Node):
             description="also execute a plan stamped before this node started (the latched "
                         "last plan)", read_only=True))
 
-    # --- inputs and worker ----------------------------------------------------------------
+    # --- inputs, preparer and executor -----------------------------------------------------
 
     def _on_plan(self, msg: StancePlan):
         """Keep the newest plan for the preparer; one equal to the last received (a latched
@@ -726,12 +727,13 @@ class TrajectoryNode(Node):
         return msg
 
     def _call(self, client, request):
-        """Call a pik_node service from the worker (the executor handles the answer): wait
-        at most service_timeout s for the service and its answer; PikLost as soon as the
-        watch loses pik_node. Unanswered, the request is sent again every RESEND_PERIOD s:
-        after a restart the dead server still counts as available until its lease
-        expires, and a request sent before the new server matched is lost (both services
-        are idempotent). An answer later than SLOW_CALL s is logged: the stream waited."""
+        """Call a pik_node service from the executor thread (rclpy's executor handles the
+        answer): wait at most service_timeout s for the service and its answer; PikLost as
+        soon as the watch loses pik_node. Unanswered, the request is sent again every
+        RESEND_PERIOD s: after a restart the dead server still counts as available until
+        its lease expires, and a request sent before the new server matched is lost (both
+        services are idempotent). An answer later than SLOW_CALL s is logged: the stream
+        waited."""
         called = time.monotonic()
         deadline, future, sent = called + self.service_timeout, None, 0.0
         while future is None or not future.done():
