@@ -166,7 +166,8 @@ class PikNode(Node):
             "YAML of swing and ball-and-socket joint limits (joint groups too), or a shipped "
             "file's name (talos, mannequin); empty = the robot's own, if any"))
         self.declare_parameter("initial_configuration", "", describe(
-            "named reference configuration (SRDF), default half_sitting or neutral"))
+            "named reference configuration (SRDF); empty = half_sitting, standing or neutral, "
+            "the first the robot has"))
         self.declare_parameter("stack_file", "", describe(
             "task stack YAML; empty = the robot's demo stack (talos, mannequin)"))
         self.declare_parameter("rate", 500.0, describe(

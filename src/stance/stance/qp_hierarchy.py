@@ -1,10 +1,12 @@
-"""Strict task priorities under bounds on dq: a cascade of small QPs (ProxSuite).
+"""Strict task priorities under bounds on dq: a cascade of small QPs (hot-started active
+sets, ProxSuite as their fallback).
 
 Same levels and damping as DampedHierarchy, plus bounds lower <= dq <= upper (rad or m:
 joint limits, velocity limits over one step, progressive clamping's damped variations)
 and, per level, inequality rows (Inequalities, e.g. a support polygon's edges: see
-QPHierarchy._row_cascade; the rest of this docstring is the bounds-only cascade). Level i works in the orthonormal basis Z
-(nv x k) of what the fixed DoFs and levels 0..i-1 leave free, dq = dq_prev + Z y:
+QPHierarchy._row_cascade; the rest of this docstring is the bounds-only cascade). Level i
+works in the orthonormal basis Z (nv x k) of what the fixed DoFs and levels 0..i-1 leave
+free, dq = dq_prev + Z y:
 
     minimize |P y - r|^2 + lambda^2 |y|^2
     subject to lower_b - dq_prev_b <= Z_b y <= upper_b - dq_prev_b   (bounded free DoFs b)

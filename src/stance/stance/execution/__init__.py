@@ -1,2 +1,3 @@
 """Executing a contact plan (ROS-free): configuration paths between stances
-(interpolation) and their time scaling (timing)."""
+(interpolation), their time scaling (timing), the stabilizer gate's rule (stabilizer) and
+the execution's task stacks and arrival gate (tracking)."""

@@ -2,8 +2,9 @@
 of contacts, free of collisions, inside the joint limits and statically stable, optimising a
 criterion (distance to a reference posture, or the potential f_T of the rough trajectory).
 
-Each iteration linearises everything at the current configuration q and solves one ProxSuite
-QP in x = [dq (nv), dv (3 if a contact is being placed)]:
+Each iteration linearises everything at the current configuration q and solves one QP
+(DAQP by default, ProxSuite with `qp_backend`) in x = [dq (nv), dv (3 if a contact is being
+placed)]:
 
     minimise   w_c |J_c dq - B dv - e_c|^2        contacts (spot frames on their targets)
              + criterion(dq) + damping |dq|^2
