@@ -1,0 +1,154 @@
+"""trajectory_node's preparer and executor threads, in process (another DDS domain), with
+verification, interpolation and execution stubbed: which plans execute, how often, and
+what the status says when a newer plan is rejected, in sequences the DDS tests cannot time
+(a plan held ready while a newer one is prepared, a rejection after the plan under way
+ended)."""
+
+import contextlib
+import threading
+import time
+from types import SimpleNamespace
+
+import pytest
+import rclpy
+import trajectory_node.node as trajectory
+from conftest import other_domain_id, wait_until
+from trajectory_node.conversions import PlanRejected
+from trajectory_node.node import TrajectoryNode
+
+
+class Script:
+    """Stubs: plan "bad ..." fails its verification, each plan takes prepare_time[name] s
+    to verify and `execute_time` s to execute, and each execution ends in `done`. Records
+    the plans executed and the statuses published."""
+
+    def __init__(self, node, prepare_time, execute_time):
+        self.node, self.prepare_time, self.execute_time = node, prepare_time, execute_time
+        self.executed, self.statuses = [], []
+        self.verifying = threading.Event()
+        node.status_pub.publish = lambda msg: self.statuses.append(msg.data)
+        node._execute = self.execute
+        node._time = lambda path: None
+
+    def verify(self, plan, scene, robot):
+        self.verifying.set()
+        time.sleep(self.prepare_time[plan])
+        if plan.startswith("bad"):
+            raise PlanRejected("fails verification: stub")
+
+    def execute(self, msg, plan, scene, planner, path, trajectory):
+        self.node._status("executing", f"plan {plan}")
+        time.sleep(self.execute_time)
+        self.executed.append(plan)
+        self.node._status("done", f"plan {plan}")
+
+    def arrive(self, name):
+        """What _on_plan does with a plan that converted."""
+        msg = SimpleNamespace(stances=[], scene=name)
+        with self.node._wakeup:
+            self.node._arrival = (msg, name, None)
+            self.node._wakeup.notify_all()
+
+    def idle(self) -> bool:
+        node = self.node
+        with node._wakeup:
+            return not (node._arrival or node._preparing or node._ready or node._pending
+                        or node._executing)
+
+
+class StubPlanner:
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def interpolate(self, plan):
+        return None
+
+
+@pytest.fixture
+def stubbed(monkeypatch):
+    """stubbed(prepare_time, execute_time): a context giving a running node's Script."""
+    monkeypatch.setattr(trajectory, "CollisionModel", lambda robot, scene: None)
+    monkeypatch.setattr(trajectory, "TransitionPlanner", StubPlanner)
+
+    @contextlib.contextmanager
+    def start(prepare_time, execute_time=0.3):
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=other_domain_id())
+        try:
+            node = TrajectoryNode(context=context)
+            script = Script(node, prepare_time, execute_time)
+            monkeypatch.setattr(trajectory, "_require_verified", script.verify)
+            node.start_worker()
+            try:
+                yield script
+            finally:
+                node.stop_worker()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
+    return start
+
+
+def test_a_plan_ready_goes_on_when_the_newer_one_is_rejected(stubbed):
+    """A is prepared while B arrives; B fails: A executes once, and no status says failed
+    (A used to be dropped for B, then B failed: nothing ran)."""
+    with stubbed({"A": 0.3, "bad B": 0.3}) as script:
+        script.arrive("A")
+        wait_until(script.verifying.is_set, 5, what="A verified")
+        script.arrive("bad B")
+        wait_until(lambda: script.executed and script.idle(), 10, what="A executed")
+        assert script.executed == ["A"]
+        rejection = next(s for s in script.statuses if "rejected" in s)
+        assert rejection.startswith("interpolating: a newer plan was rejected (fails "
+                                    "verification: stub)"), script.statuses
+        assert rejection.endswith("the plan received before it goes on")
+        assert not any(s.startswith("failed") for s in script.statuses), script.statuses
+
+
+def test_a_newer_plan_ready_replaces_the_one_held(stubbed):
+    """A is prepared while B arrives; B is ready too: only B executes."""
+    with stubbed({"A": 0.3, "B": 0.3}) as script:
+        script.arrive("A")
+        wait_until(script.verifying.is_set, 5, what="A verified")
+        script.arrive("B")
+        wait_until(lambda: script.executed and script.idle(), 10, what="B executed")
+        assert script.executed == ["B"]
+        assert any(s.startswith("interpolating: a newer plan of 0 stances on scene 'B', n = "
+                                "20 is being prepared") for s in script.statuses), \
+            script.statuses
+
+
+def test_a_rejection_after_the_plan_under_way_ended_says_failed(stubbed):
+    """A executes while B (to reject) is verified, and A ends first: B's rejection is the
+    last status and says failed, not that A goes on."""
+    with stubbed({"A": 0.05, "bad B": 1.0}, execute_time=0.3) as script:
+        script.arrive("A")
+        wait_until(lambda: any(s.startswith("executing: plan A") for s in script.statuses),
+                   5, what="A executing")
+        script.arrive("bad B")
+        wait_until(lambda: script.statuses[-1].startswith("failed") and script.idle(), 10,
+                   what="B rejected")
+        assert script.executed == ["A"]
+        assert script.statuses[-1] == "failed: plan rejected: fails verification: stub"
+
+
+def test_a_rejection_during_an_execution_says_it_goes_on(stubbed):
+    with stubbed({"A": 0.05, "bad B": 0.05}, execute_time=1.0) as script:
+        script.arrive("A")
+        wait_until(lambda: any(s.startswith("executing: plan A") for s in script.statuses),
+                   5, what="A executing")
+        script.arrive("bad B")
+        wait_until(lambda: script.executed and script.idle(), 10, what="A executed")
+        assert script.executed == ["A"]
+        assert "executing: a newer plan was rejected (fails verification: stub); this one " \
+               "goes on" in script.statuses, script.statuses
+        assert script.statuses[-1] == "done: plan A"
+
+
+def test_plans_in_a_row_each_execute_once(stubbed):
+    with stubbed({name: 0.05 for name in "ABC"}, execute_time=0.1) as script:
+        for name in "ABC":
+            script.arrive(name)
+            wait_until(lambda name=name: name in script.executed, 10, what=f"{name} executed")
+        wait_until(script.idle, 5, what="idle")
+        assert script.executed == ["A", "B", "C"]
