@@ -2,6 +2,7 @@
 verified plan, determinism, ordered son generation, and every failure reason (bad goal,
 infeasible start, no path, budget, cancel) returned instead of raised or hung."""
 
+import math
 import time
 from dataclasses import replace
 
@@ -133,6 +134,21 @@ def test_feet_too_far_apart_is_an_infeasible_start(robot, scene):
                                                                    -0.1, 0.0))
     result = plan_contacts(robot, PlanRequest(scene=scene, start=start))
     assert result.reason == planner.INFEASIBLE_START and "not reached" in result.message
+
+
+@pytest.mark.parametrize("start, message", [
+    ((Contact("left_sole", "floor", 5.0, 0.1, 0.0), Contact("right_sole", "floor", 5.0, -0.1,
+                                                            0.0)),
+     "start[0]: point (5, 0.1) is outside the polygon of 'floor'"),
+    ((Contact("no_such_spot", "floor", 0.0, 0.1, 0.0),), "start[0].spot: unknown spot"),
+    ((Contact("left_sole", "floor", math.nan, 0.1, 0.0),), "start[0].x: not finite"),
+])
+def test_a_start_contact_off_the_scene_is_an_infeasible_start(robot, scene, start, message):
+    """Checked as the scene file's start is: off the floor it used to plan a stance in mid
+    air; an unknown spot or a NaN raised deep in the posture generator."""
+    result = plan_contacts(robot, PlanRequest(scene=scene, start=start))
+    assert result.reason == planner.INFEASIBLE_START
+    assert result.message.startswith(message), result.message
 
 
 def test_a_goal_off_the_floor_ends_with_the_budget(robot, scene):

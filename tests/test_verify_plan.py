@@ -104,6 +104,33 @@ def test_foot_five_millimetres_off_is_reported(verifier, good_plan):
     assert report.failures == ["stance 0: left_foot@floor: spot 5.0 mm from its target"]
 
 
+def test_contacts_off_their_surface_are_reported(robot, verifier, good_plan):
+    """The whole stance (feet and witness) moved 5 m along x, past the floor's edge at 2 m:
+    every spot is on its target and in equilibrium on the floor's plane, but off the floor.
+    It used to pass."""
+    stance = good_plan.stances[0]
+    q = stance.q.copy()
+    q[0] += 5.0
+    moved = Plan("flat", "talos", [Stance(tuple(replace(c, x=c.x + 5.0) for c in
+                                                stance.contacts), q)])
+    report = verifier.verify(moved)
+    assert [f for f in report.failures if "outside the polygon of 'floor'" in f] == [
+        f"stance 0: {c.spot}@floor: point ({c.x + 5.0:g}, {c.y:g}) is outside the polygon of "
+        "'floor'" for c in stance.contacts]
+
+
+def test_a_witness_not_finite_is_reported_and_leaves_the_verifier_intact(verifier,
+                                                                         good_plan):
+    """A NaN in a witness is reported before any kinematics: it used to raise in the LP
+    and leave the verifier's collision data NaN (every later plan collided)."""
+    stance = good_plan.stances[0]
+    q = stance.q.copy()
+    q[7] = math.nan
+    report = verifier.verify(Plan("flat", "talos", [Stance(stance.contacts, q)]))
+    assert report.failures == ["stance 0: configuration not finite"]
+    assert verifier.verify(good_plan).ok
+
+
 def test_turned_foot_is_reported(verifier, good_plan):
     left, right = good_plan.stances[0].contacts
     turned = Plan("flat", "talos", [Stance((left, replace(right, theta=right.theta + 0.05)),

@@ -37,6 +37,7 @@ import numpy as np
 import pinocchio as pin
 
 from .contacts import Plan
+from .scene import placement_problem
 from .volumes import initial_volume
 
 # Failure reasons, as reported by the planner, the action result and the CLI.
@@ -394,6 +395,10 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
     key_postures = scene.key_postures if request.key_postures is None else request.key_postures
     start = tuple(Contact(c.spot, c.surface, c.x, c.y, c.theta)
                   for c in (scene.start if request.start is None else request.start))
+    for index, contact in enumerate(start):
+        problem = placement_problem(scene.surfaces, scene.spots, contact)
+        if problem:
+            return PlanOutcome(INFEASIBLE_START, f"start[{index}]{problem[0]}: {problem[1]}")
     if collision is None:
         collision = CollisionModel(robot, scene)
     settings = settings or PostureSettings(time_budget=math.inf)

@@ -283,18 +283,14 @@ class _SceneParser:
 
     def contact(self, entry, path: str, surfaces: dict, spots: dict) -> ContactSpec:
         fields = self.mapping(entry, path, ("spot", "surface", "x", "y", "theta"))
-        spot = self.string(fields["spot"], f"{path}.spot")
-        if spot not in spots:
-            self.fail(f"{path}.spot", f"unknown spot {spot!r}")
-        surface = self.string(fields["surface"], f"{path}.surface")
-        if surface not in surfaces:
-            self.fail(f"{path}.surface", f"unknown surface {surface!r}")
-        if spots[spot].surfaces and surface not in spots[spot].surfaces:
-            self.fail(f"{path}.surface", f"spot {spot!r} may not touch surface {surface!r}")
-        x, y = (self.number(fields[key], f"{path}.{key}") for key in "xy")
-        if not _inside_convex(surfaces[surface].polygon, np.array([x, y])):
-            self.fail(f"{path}", f"point ({x:g}, {y:g}) is outside the polygon of {surface!r}")
-        return ContactSpec(spot, surface, x, y, self.number(fields["theta"], f"{path}.theta"))
+        contact = ContactSpec(self.string(fields["spot"], f"{path}.spot"),
+                              self.string(fields["surface"], f"{path}.surface"),
+                              *(self.number(fields[key], f"{path}.{key}")
+                                for key in ("x", "y", "theta")))
+        problem = placement_problem(surfaces, spots, contact)
+        if problem:
+            self.fail(f"{path}{problem[0]}", problem[1])
+        return contact
 
     def configuration(self, entry, path: str) -> np.ndarray:
         """{base: pose, joints: {name: rad}} as q (size nq); other joints at the robot's
@@ -414,6 +410,27 @@ def polygon_problem(polygon: np.ndarray) -> str:
     if abs(winding - 1.0) > 1e-6:
         return "self-intersecting (winds around more than once)"
     return ""
+
+
+def placement_problem(surfaces: dict, spots: dict, contact) -> tuple | None:
+    """(field suffix, message) of what keeps `contact` (spot, surface, x, y, theta: a
+    Contact or ContactSpec) from being a contact of a scene with these surfaces and spots
+    (by name): an unknown spot or surface, a surface the spot may not touch, a number not
+    finite, a point outside the surface's polygon (1 mm slack); None when nothing does."""
+    if contact.spot not in spots:
+        return ".spot", f"unknown spot {contact.spot!r}"
+    if contact.surface not in surfaces:
+        return ".surface", f"unknown surface {contact.surface!r}"
+    allowed = spots[contact.spot].surfaces
+    if allowed and contact.surface not in allowed:
+        return ".surface", f"spot {contact.spot!r} may not touch surface {contact.surface!r}"
+    for key in ("x", "y", "theta"):
+        if not math.isfinite(getattr(contact, key)):
+            return f".{key}", "not finite"
+    if not _inside_convex(surfaces[contact.surface].polygon, np.array([contact.x, contact.y])):
+        return "", (f"point ({contact.x:g}, {contact.y:g}) is outside the polygon of "
+                    f"{contact.surface!r}")
+    return None
 
 
 def _inside_convex(polygon: np.ndarray, point: np.ndarray) -> bool:

@@ -34,6 +34,7 @@ import pinocchio as pin
 from scipy.optimize import linprog
 
 from .equilibrium import GRAVITY
+from .scene import placement_problem
 
 JOINT_LIMIT_TOLERANCE = 1e-6   # rad (or m)
 SAME_PLACE_TOLERANCE = 1e-9    # m and rad: a contact carried over between stances
@@ -257,11 +258,20 @@ class PlanVerifier:
                                 f"{report.transition}")
         q = np.asarray(stance.q, dtype=float)
         if q.shape != (model.nq,):
-            failures.append(f"configuration has {q.size} values, the robot needs {model.nq}")
+            failures.append(f"configuration of shape {q.shape}, the robot needs ({model.nq},)")
+            return report
+        if not np.isfinite(q).all():
+            failures.append("configuration not finite")
             return report
         unknown = self._unknown_names(stance)
         if unknown:
             failures += unknown
+            return report
+        misplaced = [(contact, placement_problem(self.scene.surfaces, self.scene.spots,
+                                                 contact)) for contact in stance.contacts]
+        failures += [f"{_contact_name(contact)}: {problem[1]}"
+                     for contact, problem in misplaced if problem]
+        if any(problem for _, problem in misplaced):
             return report
         spots = [contact.spot for contact in stance.contacts]
         failures += [f"spot {name!r} in {spots.count(name)} contacts"
