@@ -15,7 +15,7 @@ from stance.execution.interpolation import (DETOUR_LINE_TOLERANCE, SAMPLE_CONTAC
                                             InterpolationError, SpotPath, TransitionPlanner,
                                             spot_pose)
 from stance.planning.collision import CollisionModel
-from stance.planning.contacts import Contact, Stance, load_plan
+from stance.planning.contacts import Contact, Plan, Stance, load_plan
 from stance.planning.planner import PlanRequest, plan_contacts
 from stance.planning.scene import load_scene
 from stance.robot import Robot
@@ -191,6 +191,31 @@ def test_unreachable_sample_names_transition_and_sample(flat):
         planner.transition(7, first, Stance(moved, away))
     assert failure.value.transition == 7 and 1 <= failure.value.sample < planner.steps
     assert "transition 7 -> 8" in str(failure.value) and failure.value.reason
+
+
+def test_plans_without_a_transition_or_with_a_witness_not_finite_are_refused(flat):
+    """One stance used to give one sample (timing then raised IndexError); a NaN witness
+    was taken as the posture criterion's reference and a NaN path came back."""
+    robot, scene, plan, planner, _ = flat
+    with pytest.raises(ValueError, match="a plan of 1 stance.s. has no transition"):
+        planner.interpolate(Plan(plan.scene, plan.robot, plan.stances[:1]))
+    broken = plan.stances[1].q.copy()
+    broken[9] = math.nan
+    stances = [plan.stances[0], Stance(plan.stances[1].contacts, broken)]
+    with pytest.raises(ValueError, match="stance 1: the witness is not 39 finite values"):
+        planner.interpolate(Plan(plan.scene, plan.robot, stances))
+
+
+@pytest.mark.parametrize("keywords, message", [
+    ({"steps": 0}, "steps must be an integer >= 1"),
+    ({"steps": 1.5}, "steps must be an integer >= 1"),
+    ({"lift": math.nan}, "lift must be finite and >= 0"),
+])
+def test_transition_planner_settings_that_mean_nothing_are_refused(flat, keywords, message):
+    """steps 0 used to skip every transition (all events at sample 0)."""
+    robot, scene, *_ = flat
+    with pytest.raises(ValueError, match=message):
+        TransitionPlanner(robot, scene, **keywords)
 
 
 def test_spots_sharing_a_short_chain_with_a_held_spot_are_held_in_position_only(flat):

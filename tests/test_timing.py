@@ -2,6 +2,8 @@
 (joint speed and acceleration limits, rest at contact events), checked by sampling and
 finite differences on a Talos path with corners and a joint driven onto its limit."""
 
+import math
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -96,3 +98,37 @@ def test_time_optimal_respects_accelerations_and_is_not_longer(robot, trajectori
     assert np.mean(active > 0.9) > 0.8
     _, _, v_bounded = sampled(robot, bounded, step)
     assert np.max(np.abs(np.diff(v_bounded, axis=0) / step)) <= ACCELERATION * 1.02
+
+
+@pytest.mark.parametrize("timing", [sinusoidal_trajectory, time_optimal_trajectory])
+@pytest.mark.parametrize("keywords, message", [
+    ({"velocity_scale": 0.0}, "velocity_scale must be finite and > 0"),
+    ({"velocity_scale": -0.5}, "velocity_scale must be finite and > 0"),
+    ({"velocity_scale": math.nan}, "velocity_scale must be finite and > 0"),
+    ({"velocity_scale": math.inf}, "velocity_scale must be finite and > 0"),
+    ({"acceleration_limit": 0.0}, "acceleration_limit must be finite and > 0"),
+    ({"acceleration_limit": -4.0}, "acceleration_limit must be finite and > 0"),
+    ({"acceleration_limit": math.nan}, "acceleration_limit must be finite and > 0"),
+])
+def test_limits_that_mean_nothing_are_refused(robot, samples, timing, keywords, message):
+    """They used to give durations of 2e-9 s, NaN or inf, or be ignored."""
+    with pytest.raises(ValueError, match=message):
+        timing(robot, samples, [25], **keywords)
+
+
+@pytest.mark.parametrize("timing", [sinusoidal_trajectory, time_optimal_trajectory])
+def test_a_path_of_one_sample_or_not_finite_is_refused(robot, samples, timing):
+    """One sample (a plan of one stance) raised an IndexError; NaN went through."""
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        timing(robot, samples[:1], [])
+    broken = samples.copy()
+    broken[10, 8] = math.nan
+    with pytest.raises(ValueError, match="not finite"):
+        timing(robot, broken, [25])
+    with pytest.raises(ValueError, match="rest samples must be in"):
+        timing(robot, samples, [len(samples)])
+
+
+def test_a_time_optimal_grid_below_one_is_refused(robot, samples):
+    with pytest.raises(ValueError, match="grid must be an integer >= 1"):
+        time_optimal_trajectory(robot, samples, [25], grid=0)

@@ -476,10 +476,11 @@ class TrajectoryNode(Node):
             planner = TransitionPlanner(self.robot, scene, CollisionModel(self.robot, scene),
                                         steps=self.steps)
             path = planner.interpolate(plan)
+            trajectory = self._time(path)
         except (ValueError, InterpolationError) as error:
             self._reject_plan(error, preparing_goes_on=False)
             return None
-        return Prepared(msg, plan, scene, planner, path, self._time(path))
+        return Prepared(msg, plan, scene, planner, path, trajectory)
 
     def _run(self):
         """Executor: one prepared plan after the other; an unexpected error fails that

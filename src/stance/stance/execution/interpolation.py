@@ -220,6 +220,10 @@ class TransitionPlanner:
 
     def __init__(self, robot, scene, collision=None, settings: PostureSettings | None = None,
                  steps: int = 20, lift: float = LIFT, criterion_weight: float = 1e-2):
+        if not (isinstance(steps, (int, np.integer)) and steps >= 1):
+            raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+        if not (math.isfinite(lift) and lift >= 0.0):
+            raise ValueError(f"lift must be finite and >= 0 m, got {lift!r}")
         self.scene, self.steps, self.lift = scene, steps, lift
         self.criterion_weight = criterion_weight
         settings = settings or PostureSettings(time_budget=math.inf,
@@ -324,8 +328,18 @@ class TransitionPlanner:
         return None
 
     def interpolate(self, plan) -> InterpolatedPlan:
-        """The whole plan as one sampled path (raises InterpolationError on a failure)."""
+        """The whole plan as one sampled path (raises InterpolationError on a failure;
+        ValueError for fewer than two stances or a witness that is not nq finite
+        values)."""
         stances = plan.stances
+        if len(stances) < 2:
+            raise ValueError(f"a plan of {len(stances)} stance(s) has no transition to "
+                             "interpolate")
+        nq = self.generator.robot.model.nq
+        for index, stance in enumerate(stances):
+            q = np.asarray(stance.q, dtype=float)
+            if q.shape != (nq,) or not np.isfinite(q).all():
+                raise ValueError(f"stance {index}: the witness is not {nq} finite values")
         results = [self.transition(index, first, second)
                    for index, (first, second) in enumerate(zip(stances[:-1], stances[1:]))]
         return assemble(stances, self.steps, results)

@@ -122,8 +122,18 @@ class Trajectory:
 
 
 def _rest_pieces(model, q: np.ndarray, rest_samples) -> list:
-    """_PathPiece between consecutive rest samples (the first and last samples included)."""
-    rest = np.unique(np.concatenate([[0, len(q) - 1], np.asarray(rest_samples, dtype=int)]))
+    """_PathPiece between consecutive rest samples (the first and last samples included);
+    ValueError for fewer than two finite samples of size nq or a rest sample off the path."""
+    q = np.asarray(q, dtype=float)
+    if q.ndim != 2 or q.shape[1] != model.nq or len(q) < 2:
+        raise ValueError(f"the path needs at least 2 samples of {model.nq} values, got an "
+                         f"array of shape {q.shape}")
+    if not np.isfinite(q).all():
+        raise ValueError("the path has samples that are not finite")
+    rest_samples = np.asarray(rest_samples, dtype=int)
+    if np.any((rest_samples < 0) | (rest_samples >= len(q))):
+        raise ValueError(f"rest samples must be in [0, {len(q) - 1}]")
+    rest = np.unique(np.concatenate([[0, len(q) - 1], rest_samples]))
     return [_PathPiece(model, q[a:b + 1]) for a, b in zip(rest[:-1], rest[1:])]
 
 
@@ -140,7 +150,9 @@ def sinusoidal_trajectory(robot, q: np.ndarray, rest_samples, velocity_scale: fl
     at most velocity_scale * robot.velocity_limit; with acceleration_limit (rad/s^2, scalar
     or per limited joint; the paper has none) the duration also keeps
     |x' p'' + x'' p'^2| under it (to compare with time_optimal_trajectory)."""
-    velocity = velocity_scale * robot.velocity_limit
+    velocity = _velocity(robot, velocity_scale)
+    if acceleration_limit is not None:
+        _per_joint(acceleration_limit, velocity)
     pieces, laws = _rest_pieces(robot.model, q, rest_samples), []
     for piece in pieces:
         m = piece.steps
@@ -169,8 +181,10 @@ def time_optimal_trajectory(robot, q: np.ndarray, rest_samples, velocity_scale: 
     """Fastest timing under joint speeds <= velocity_scale * robot.velocity_limit and
     |joint accelerations| <= acceleration_limit (rad/s^2, scalar or per limited joint),
     at rest at every rest sample (module docstring); `grid` points per sample interval."""
-    velocity = velocity_scale * robot.velocity_limit
+    velocity = _velocity(robot, velocity_scale)
     acceleration = _per_joint(acceleration_limit, velocity)
+    if not (isinstance(grid, (int, np.integer)) and grid >= 1):
+        raise ValueError(f"grid must be an integer >= 1, got {grid!r}")
     pieces, laws = _rest_pieces(robot.model, q, rest_samples), []
     for piece in pieces:
         points = np.linspace(0.0, piece.steps, grid * piece.steps + 1)
@@ -186,7 +200,20 @@ def time_optimal_trajectory(robot, q: np.ndarray, rest_samples, velocity_scale: 
 
 
 def _per_joint(limit, like: np.ndarray) -> np.ndarray:
-    return np.broadcast_to(np.asarray(limit, dtype=float), like.shape)
+    """The acceleration limit (rad/s^2, scalar or per limited joint) per limited joint;
+    ValueError unless every value is finite and > 0."""
+    values = np.broadcast_to(np.asarray(limit, dtype=float), like.shape)
+    if not (np.isfinite(values).all() and (values > 0.0).all()):
+        raise ValueError(f"acceleration_limit must be finite and > 0, got {limit!r}")
+    return values
+
+
+def _velocity(robot, velocity_scale: float) -> np.ndarray:
+    """velocity_scale * robot.velocity_limit; ValueError unless the scale is finite and
+    > 0."""
+    if not (math.isfinite(velocity_scale) and velocity_scale > 0.0):
+        raise ValueError(f"velocity_scale must be finite and > 0, got {velocity_scale!r}")
+    return velocity_scale * robot.velocity_limit
 
 
 def _topp(points, start, end, velocity, acceleration) -> np.ndarray:

@@ -199,6 +199,8 @@ class PostureGenerator:
         support = [c for c in contacts if c.in_stability]
         if not support:
             return PostureResult(False, q_init, contacts, "no supporting contact")
+        if not np.isfinite(q_init).all():
+            return PostureResult(False, q_init, contacts, "start configuration not finite")
         q = self._clip_to_limits(np.array(q_init, dtype=float))
         for contact in contacts:
             self._spot_tasks[contact.spot].target = contact.spot_target(
