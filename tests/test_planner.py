@@ -15,6 +15,7 @@ from stance.planning.planner import PlanRequest, plan_contacts
 from stance.planning.scene import Goal, load_scene
 from stance.planning.verify import verify_plan
 from stance.robot import Robot
+from stance_tools import cli
 
 
 @pytest.fixture(scope="module")
@@ -149,6 +150,27 @@ def test_a_start_contact_off_the_scene_is_an_infeasible_start(robot, scene, star
     result = plan_contacts(robot, PlanRequest(scene=scene, start=start))
     assert result.reason == planner.INFEASIBLE_START
     assert result.message.startswith(message), result.message
+
+
+@pytest.mark.parametrize("keywords, message", [
+    ({"max_nodes": 0}, "max_nodes must be an integer >= 1"),
+    ({"max_nodes": math.nan}, "max_nodes must be an integer >= 1"),
+    ({"time_budget": math.nan}, "time_budget must be > 0 s"),
+    ({"time_budget": -1.0}, "time_budget must be > 0 s"),
+    ({"slope": math.nan}, "slope must be finite and > 0"),
+    ({"workers": 0}, "workers must be an integer >= 1"),
+    ({"transition_steps": -1}, "transition_steps must be an integer >= 0"),
+])
+def test_a_request_whose_budgets_mean_nothing_is_refused(scene, keywords, message):
+    """A NaN budget used to disable its limit (an unreachable goal searched on until the
+    tree ran out); a NaN slope ended in a misleading no_path."""
+    with pytest.raises(ValueError, match=message):
+        PlanRequest(scene=scene, **keywords)
+
+
+def test_stance_plan_reports_a_bad_budget(capsys):
+    assert cli.main(["plan", "flat_steps", "--max-nodes", "0", "--quiet"]) == 2
+    assert "stance plan: max_nodes must be an integer >= 1, got 0" in capsys.readouterr().err
 
 
 def test_a_goal_off_the_floor_ends_with_the_budget(robot, scene):

@@ -62,6 +62,9 @@ def run(args) -> int:
         except SceneError as error:
             print(f"stance plan: bad scene: {error}", file=sys.stderr)
             return 2
+        except ValueError as error:     # PlanRequest's budgets and settings
+            print(f"stance plan: {error}", file=sys.stderr)
+            return 2
     statistics = outcome.statistics
     print(f"{outcome.reason}: {outcome.message} ({statistics.get('nodes_expanded', 0)} nodes,"
           f" {statistics.get('posture_generations', 0)} posture generations, "

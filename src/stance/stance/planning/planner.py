@@ -68,6 +68,18 @@ class PlanRequest:
                                         # incoming transition must pass before the stance is
                                         # expanded (0: unchecked); see _Search.executable
 
+    def __post_init__(self):
+        """ValueError naming a budget or setting that means nothing (a NaN budget used to
+        disable its limit: an unreachable goal then searched on until the tree ran out)."""
+        for name, least in (("max_nodes", 1), ("workers", 1), ("transition_steps", 0)):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, np.integer)) and value >= least):
+                raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+        if not self.time_budget > 0.0:
+            raise ValueError(f"time_budget must be > 0 s, got {self.time_budget!r}")
+        if self.slope is not None and not (math.isfinite(self.slope) and self.slope > 0.0):
+            raise ValueError(f"slope must be finite and > 0, got {self.slope!r}")
+
 
 @dataclass
 class PlanProgress:
