@@ -16,9 +16,11 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from ..tasks import MAX_COORDINATE
 from ..yaml_file import load_yaml_file
 
 DEFAULT_POTENTIAL_SLOPE = 10.0
+MAX_NUMBER = MAX_COORDINATE   # m, rad or unitless: a scene's numbers stay below it in magnitude
 
 
 class SceneError(ValueError):
@@ -207,12 +209,17 @@ class _SceneParser:
             self.fail("key_postures", f"needs at least 2 postures, got {len(postures)}")
         key_postures = np.array([self.configuration(entry, f"key_postures[{i}]")
                                  for i, entry in enumerate(postures)])
+        potential_slope = self.number(fields.get("potential_slope", DEFAULT_POTENTIAL_SLOPE),
+                                      "potential_slope", positive=True)
+        from .potential import RoughTrajectory
+        try:    # the planner's rough trajectory through them: bases apart, turns bounded
+            RoughTrajectory(self.robot.model, key_postures, k=potential_slope)
+        except ValueError as error:
+            self.fail("key_postures", str(error))
         return Scene(name=name, robot=robot_spec, surfaces=surfaces, obstacles=obstacles,
                      spots=spots, start=start_contacts, start_configuration=start_configuration,
                      key_postures=key_postures, goal=self.goal(fields["goal"]),
-                     potential_slope=self.number(fields.get("potential_slope",
-                                                            DEFAULT_POTENTIAL_SLOPE),
-                                                 "potential_slope", positive=True),
+                     potential_slope=potential_slope,
                      locked_joints=self.locked_joints(fields.get("locked_joints", [])),
                      source=self.source)
 
@@ -359,11 +366,17 @@ class _SceneParser:
     def number(self, value, path: str, positive: bool = False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             self.fail(path, f"must be a number, got {value!r}")
+        try:
+            value = float(value)
+        except OverflowError:       # an integer of hundreds of digits
+            self.fail(path, "must be finite, got an integer too large for a float")
         if not math.isfinite(value):
             self.fail(path, f"must be finite, got {value!r}")
+        if abs(value) > MAX_NUMBER:
+            self.fail(path, f"must be at most {MAX_NUMBER:g} in magnitude, got {value!r}")
         if positive and value <= 0:
             self.fail(path, f"must be > 0, got {value!r}")
-        return float(value)
+        return value
 
     def vector(self, value, path: str, size: int, positive: bool = False) -> np.ndarray:
         values = self.sequence(value, path)
