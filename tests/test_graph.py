@@ -122,6 +122,17 @@ def test_sigint_stops_the_default_graph_and_every_child(processes, tmp_path):
      "nodes[0] (a).parameters.rate"),
     ("nodes:\n  - {name: a, executable: pik_node}\n  - {name: a, executable: pik_node}",
      "nodes[1] (a).name: duplicate name"),
+    # a NaN backoff: "restart 1/3 in nan s", never restarted, never ended
+    ("nodes:\n  - {name: a, executable: pik_node, restart: {backoff: .nan}}",
+     "nodes[0] (a).restart.backoff: expected finite seconds >= 0"),
+    # a name that is a path: its log went outside --log-dir
+    ("nodes:\n  - {name: ../../escaped, executable: pik_node}",
+     "nodes[0].name: '../../escaped' is not a node name"),
+    # a date: a traceback (not JSON); a bad name: the node crash-looped on its -p argument
+    ("nodes:\n  - {name: a, executable: pik_node, parameters: {when: 2024-01-01}}",
+     "nodes[0] (a).parameters.when: expected a boolean, number, string or list"),
+    ("nodes:\n  - {name: a, executable: pik_node, parameters: {'bad key:=': 1}}",
+     "nodes[0] (a).parameters.bad key:=: not a parameter name"),
 ])
 def test_malformed_graph_names_the_field(tmp_path, text, message):
     with pytest.raises(GraphError, match=re.escape(message)):

@@ -122,7 +122,7 @@ COST_PER_LEVEL = 10.0      # Pink has no priorities: cost 10^-priority * sqrt(we
 
 
 def add_pik_arguments(parser) -> None:
-    parser.add_argument("--steps", type=int, default=2000, help="timed steps per contender")
+    parser.add_argument("--steps", type=positive(int), default=2000, help="timed steps per contender")
     parser.add_argument("--warmup", type=int, default=200,
                         help="untimed steps first (numba and QP set-up excluded)")
     parser.add_argument("--stack", choices=PIK_STACKS, default="hands",
@@ -132,7 +132,7 @@ def add_pik_arguments(parser) -> None:
                         metavar=("X", "Y", "Z"),
                         help="right-hand target offset (m, world); the left hand's is its "
                              "mirror image (y negated)")
-    parser.add_argument("--dt", type=float, default=0.002,
+    parser.add_argument("--dt", type=positive(float), default=0.002,
                         help="step period (s): velocity limits for both solvers")
     parser.add_argument("--backends", nargs="+", default=PINK_BACKENDS,
                         help="Pink QP backends (those not installed are skipped)")
@@ -462,9 +462,9 @@ HIERARCHIES = {"svd": False, "qp": True}   # contender label -> PIKSolver on QPH
 
 
 def add_levels_arguments(parser) -> None:
-    parser.add_argument("--steps", type=int, default=2000, help="timed steps per contender")
+    parser.add_argument("--steps", type=positive(int), default=2000, help="timed steps per contender")
     parser.add_argument("--warmup", type=int, default=200, help="untimed steps first")
-    parser.add_argument("--dt", type=float, default=0.002,
+    parser.add_argument("--dt", type=positive(float), default=0.002,
                         help="step period (s): velocity limits, bounds of the QP hierarchy")
     parser.add_argument("--json", help="also write the figures to this JSON file")
 

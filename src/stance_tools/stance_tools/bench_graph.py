@@ -25,6 +25,7 @@ import threading
 import time
 from pathlib import Path
 
+from .cli import positive
 from .processes import terminate_as_interrupt
 
 SCENE = "flat_steps"
@@ -41,11 +42,11 @@ class BenchError(RuntimeError):
 
 
 def add_graph_arguments(parser) -> None:
-    parser.add_argument("--seconds", type=float, default=20.0,
+    parser.add_argument("--seconds", type=positive(float), default=20.0,
                         help="s measured per phase (idle, executing)")
-    parser.add_argument("--settle", type=float, default=5.0,
+    parser.add_argument("--settle", type=positive(float), default=5.0,
                         help="s between the graph being up and the idle phase")
-    parser.add_argument("--velocity-scale", type=float, default=None,
+    parser.add_argument("--velocity-scale", type=positive(float), default=None,
                         help="trajectory_node's joint speeds as a fraction of the URDF limits "
                              "(default: stance demo's, so the execution outlasts --seconds)")
     parser.add_argument("--log-dir", type=Path, default=DEFAULT_LOG_DIR,

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 
+from .cli import positive
+
 PAPER_SECONDS = 90.0   # the paper's whole chair plan, n = 20 (3.3)
 
 
@@ -16,10 +18,10 @@ def add_interpolate_arguments(parser) -> None:
     source.add_argument("--plan", default=None, help="plan file (JSON, `stance plan -o`)")
     source.add_argument("--scene", default="flat_steps",
                         help="scene to plan first when no --plan is given")
-    parser.add_argument("-n", "--steps", type=int, default=20, help="steps per transition")
+    parser.add_argument("-n", "--steps", type=positive(int), default=20, help="steps per transition")
     parser.add_argument("--lift", type=float, default=0.05,
                         help="m: straight lines leaving and entering contacts")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs (median)")
+    parser.add_argument("--repeats", type=positive(int), default=3, help="timed runs (median)")
     parser.add_argument("--json", default=None, help="write the figures (JSON)")
 
 

@@ -23,14 +23,16 @@ import time
 
 import numpy as np
 
+from .cli import positive
+
 
 STAMP = struct.Struct("<iI")  # header.stamp after the 4-byte CDR encapsulation header
 
 
 def add_node_arguments(parser) -> None:
-    parser.add_argument("--rate", type=float, default=500.0, help="pik_node rate (Hz)")
-    parser.add_argument("--duration", type=float, default=10.0, help="measured seconds")
-    parser.add_argument("--target-rate", type=float, default=50.0,
+    parser.add_argument("--rate", type=positive(float), default=500.0, help="pik_node rate (Hz)")
+    parser.add_argument("--duration", type=positive(float), default=10.0, help="measured seconds")
+    parser.add_argument("--target-rate", type=positive(float), default=50.0,
                         help="targets published per second")
     parser.add_argument("--json", help="also write the figures to this JSON file")
 

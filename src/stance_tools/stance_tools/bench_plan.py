@@ -7,17 +7,19 @@ from __future__ import annotations
 
 import json
 
+from .cli import positive
+
 POSTURE_MEDIAN_TARGET = 0.030   # s per posture generation (issue target)
 
 
 def add_plan_arguments(parser) -> None:
     parser.add_argument("--scene", default="chair_table", help="scene name or YAML path")
-    parser.add_argument("--max-nodes", type=int, default=2400, help="nodes expanded at most")
-    parser.add_argument("--time-budget", type=float, default=900.0, help="s per planning run")
-    parser.add_argument("--unordered-budget", type=float, default=300.0,
+    parser.add_argument("--max-nodes", type=positive(int), default=2400, help="nodes expanded at most")
+    parser.add_argument("--time-budget", type=positive(float), default=900.0, help="s per planning run")
+    parser.add_argument("--unordered-budget", type=positive(float), default=300.0,
                         help="s for the run without ordered sons (compared per expanded "
                              "node); 0 skips it")
-    parser.add_argument("--workers", type=int, default=2,
+    parser.add_argument("--workers", type=positive(int), default=2,
                         help="processes generating a node's first sons together")
     parser.add_argument("--plan", default=None, help="write the ordered run's plan (JSON)")
     parser.add_argument("--json", default=None, help="write the figures (JSON)")

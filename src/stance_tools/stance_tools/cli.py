@@ -5,6 +5,7 @@ are imported only when their subcommand runs, so `stance plot` never loads rclpy
 """
 
 import argparse
+import math
 import importlib
 import sys
 
@@ -34,12 +35,15 @@ SUBCOMMANDS = {
 }
 
 
-def positive(kind):
-    """argparse type: a value of `kind` (int, float) above 0."""
+def positive(kind, most=None):
+    """argparse type: a finite value of `kind` (int, float) above 0, and at most `most`
+    when given (nan and inf are refused: nan passed every comparison)."""
     def parse(text):
         value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        if not math.isfinite(value) or value <= 0:
+            raise argparse.ArgumentTypeError(f"must be finite and > 0, got {text}")
+        if most is not None and value > most:
+            raise argparse.ArgumentTypeError(f"must be at most {most:g}, got {text}")
         return value
     parse.__name__ = kind.__name__  # argparse names the type in its messages
     return parse

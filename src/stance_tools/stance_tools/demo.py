@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from .background_node import PROBE_WAIT, BackgroundNode
+from .cli import positive
 from .processes import ProcessGroup, terminate_as_interrupt
 
 DEFAULT_OUTPUT = Path("out") / "demo"
@@ -73,10 +74,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--timing", choices=["sinusoidal", "time_optimal"],
                         help="pipeline: trajectory_node's time law (default: time_optimal "
                              "on chair_table, else its parameter file's)")
-    parser.add_argument("--velocity-scale", type=float, default=VELOCITY_SCALE,
+    parser.add_argument("--velocity-scale", type=positive(float), default=VELOCITY_SCALE,
                         help="pipeline: trajectory_node's joint speeds as a fraction of the "
                              f"URDF limits (default: {VELOCITY_SCALE})")
-    parser.add_argument("--planner-workers", type=int, default=PLANNER_WORKERS,
+    parser.add_argument("--planner-workers", type=positive(int), default=PLANNER_WORKERS,
                         help="pipeline: contact_planner_node's worker processes (default: "
                              f"{PLANNER_WORKERS}, the cores up to 2)")
     parser.add_argument("--path", default="reach_limits",

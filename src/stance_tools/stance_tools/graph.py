@@ -12,7 +12,9 @@ goes to <log-dir>/<name>.log (appended across restarts).
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -24,6 +26,7 @@ from pathlib import Path
 
 import yaml
 
+from .cli import positive
 from .processes import signal_group, spawn, stop_processes
 
 DEFAULT_GRAPH = Path(__file__).parent / "data" / "graph.yaml"
@@ -31,6 +34,8 @@ NODE_FIELDS = ("name", "executable", "package", "params_file", "parameters", "re
                "optional")
 RESTART_DEFAULTS = {"max_restarts": 3, "backoff": 1.0}
 MAX_BACKOFF = 60.0  # s
+NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")    # a ROS node name (its log file's too)
+PARAMETER_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
 POLL_PERIOD = 0.1  # s
 
 
@@ -57,7 +62,10 @@ def load_graph(path: Path) -> list[NodeSpec]:
     """Parse and check a graph file (nothing is looked up in the install yet)."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as error:
+        raise GraphError(f"{path}: not a YAML text file (not UTF-8: byte {error.start})") \
+            from error
     except (OSError, yaml.YAMLError) as error:
         raise GraphError(str(error)) from error
     if not isinstance(data, dict) or "nodes" not in data:
@@ -80,6 +88,9 @@ def _parse_node(entry, where: str, base: Path) -> NodeSpec:
     if not isinstance(entry, dict):
         raise GraphError(f"{where}: expected a mapping")
     name = _string(entry, "name", where)
+    if not NODE_NAME.fullmatch(name):
+        raise GraphError(f"{where}.name: {name!r} is not a node name (letters, digits and "
+                         "underscores, not starting with a digit)")
     where = f"{where} ({name})"
     unknown = sorted(set(entry) - set(NODE_FIELDS))
     if unknown:
@@ -91,8 +102,11 @@ def _parse_node(entry, where: str, base: Path) -> NodeSpec:
     if not isinstance(parameters, dict):
         raise GraphError(f"{where}.parameters: expected a mapping of name: value")
     for key, value in parameters.items():
-        if not isinstance(key, str) or isinstance(value, dict) or value is None:
-            raise GraphError(f"{where}.parameters.{key}: expected a scalar or list value")
+        if not isinstance(key, str) or not PARAMETER_NAME.fullmatch(key):
+            raise GraphError(f"{where}.parameters.{key}: not a parameter name")
+        if not _parameter_value(value):
+            raise GraphError(f"{where}.parameters.{key}: expected a boolean, number, string "
+                             "or list of one of these")
     optional = entry.get("optional", False)
     if not isinstance(optional, bool):
         raise GraphError(f"{where}.optional: expected true or false")
@@ -110,9 +124,20 @@ def _restart_policy(restart, where: str) -> tuple[int, float]:
     max_restarts, backoff = restart["max_restarts"], restart["backoff"]
     if not isinstance(max_restarts, int) or isinstance(max_restarts, bool) or max_restarts < 0:
         raise GraphError(f"{where}.max_restarts: expected an integer >= 0")
-    if not isinstance(backoff, (int, float)) or isinstance(backoff, bool) or backoff < 0:
-        raise GraphError(f"{where}.backoff: expected seconds >= 0")
+    if not isinstance(backoff, (int, float)) or isinstance(backoff, bool) or \
+            not 0.0 <= backoff < math.inf:
+        raise GraphError(f"{where}.backoff: expected finite seconds >= 0")
     return max_restarts, float(backoff)
+
+
+def _parameter_value(value) -> bool:
+    """Whether a ROS parameter can take the value (what -p parses as YAML): a boolean, a
+    finite number, a string, or a list of those."""
+    if isinstance(value, list):
+        return all(_parameter_value(item) and not isinstance(item, list) for item in value)
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return isinstance(value, (bool, int, str))
 
 
 def _string(entry: dict, key: str, where: str) -> str:
@@ -275,7 +300,7 @@ def add_arguments(parser) -> None:
                         help="start only these nodes of the graph (by name)")
     parser.add_argument("--log-dir", type=Path, metavar="DIR",
                         help="write each node's output to DIR/<name>.log instead of stdout")
-    parser.add_argument("--stop-timeout", type=float, default=10.0, metavar="SECONDS",
+    parser.add_argument("--stop-timeout", type=positive(float), default=10.0, metavar="SECONDS",
                         help="seconds nodes get to exit after SIGINT, before SIGTERM")
 
 
@@ -297,7 +322,11 @@ def run(args) -> int:
         print(f"stance graph: bad graph {args.graph}: {error}", file=sys.stderr)
         return 2
     if args.log_dir is not None:
-        args.log_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            args.log_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            print(f"stance graph: --log-dir {args.log_dir}: {error.strerror}", file=sys.stderr)
+            return 2
         report(f"node logs in {args.log_dir}")
     nodes = [SupervisedNode(spec, argv, args.log_dir, report) for spec, argv in commands]
     stop = threading.Event()

@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .cli import positive
+
 
 def add_arguments(parser) -> None:
     parser.description = __doc__
@@ -21,7 +23,7 @@ def add_arguments(parser) -> None:
     set_parser.add_argument("node", help="node name, e.g. /pik_node")
     set_parser.add_argument("name", help="parameter name, e.g. strategy")
     set_parser.add_argument("value", help="value, read as YAML (clamping, 0.1, true, [a, b])")
-    set_parser.add_argument("--timeout", type=float, default=5.0,
+    set_parser.add_argument("--timeout", type=positive(float), default=5.0,
                             help="s to wait for the node's parameter services")
 
 

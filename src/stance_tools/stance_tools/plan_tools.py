@@ -19,6 +19,8 @@ import textwrap
 
 import numpy as np
 
+from .cli import positive
+
 CHECK_COMMAND = "check-plan"
 PLOT_COMMAND = "plot-plan"
 
@@ -38,9 +40,9 @@ def run(args) -> int:
 def _add_check_arguments(parser) -> None:
     parser.add_argument("plan", help="plan file (JSON, as written by the planner)")
     parser.add_argument("--scene", help="scene name or YAML path (default: the plan's scene)")
-    parser.add_argument("--contact-tolerance", type=float, default=0.001,
+    parser.add_argument("--contact-tolerance", type=positive(float), default=0.001,
                         help="largest spot position error (m, default 0.001)")
-    parser.add_argument("--angle-tolerance", type=float, default=1.0,
+    parser.add_argument("--angle-tolerance", type=positive(float), default=1.0,
                         help="largest spot angle error (deg, default 1)")
 
 
@@ -48,9 +50,9 @@ def _add_plot_arguments(parser) -> None:
     parser.add_argument("plan", help="plan file (JSON, as written by the planner)")
     parser.add_argument("-o", "--output", required=True, help="PNG file to write")
     parser.add_argument("--scene", help="scene name or YAML path (default: the plan's scene)")
-    parser.add_argument("--every", type=int, default=1,
+    parser.add_argument("--every", type=positive(int), default=1,
                         help="draw every N-th stance (the last one always)")
-    parser.add_argument("--columns", type=int, default=4, help="panels per row")
+    parser.add_argument("--columns", type=positive(int), default=4, help="panels per row")
 
 
 def _load(args) -> tuple:

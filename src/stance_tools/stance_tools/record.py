@@ -58,6 +58,8 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfil
                        ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
 
+from .cli import positive
+
 ROSBAG2_METADATA_VERSION = 9  # rosbag2 in Jazzy
 ROS_DISTRO = "jazzy"
 DEFINITION_DELIMITER = "=" * 80 + "\n"
@@ -475,11 +477,11 @@ def add_arguments(parser):
                         help="bag directory to create (must not exist)")
     parser.add_argument("topics", nargs="*", metavar="TOPIC", help="topics to record")
     parser.add_argument("--all", action="store_true", help="record every non-hidden topic")
-    parser.add_argument("--duration", type=float, metavar="SECONDS",
+    parser.add_argument("--duration", type=positive(float), metavar="SECONDS",
                         help="stop after this many seconds (default: until SIGINT/SIGTERM)")
-    parser.add_argument("--discovery-period", type=float, default=0.2, metavar="S",
+    parser.add_argument("--discovery-period", type=positive(float), default=0.2, metavar="S",
                         help="seconds between two searches for new topics (default 0.2)")
-    parser.add_argument("--batch-period", type=float, default=0.01, metavar="S",
+    parser.add_argument("--batch-period", type=positive(float), default=0.01, metavar="S",
                         help="seconds between two takes of the messages the readers hold "
                              "(default 0.01, at most 10: a reader holds a whole period; "
                              "0: no pause, about one executor wake-up per message)")

@@ -52,6 +52,7 @@ PATHS_PACKAGE_DIR = "paths"
 STEP_SCALE = 2.0  # factor applied to both steps by '+' and '-'
 KEYBOARD_RATE = 20.0  # Hz, default republish rate of the keyboard mode
 SCRIPTED_RATE = 50.0  # Hz, default publish rate of the scripted mode
+MAX_RATE = 2000.0  # Hz: pik_node's highest rate; faster targets would never be used
 FLUSH_TIMEOUT = 5.0  # s, wait for pik_node to acknowledge the last targets before exiting
 # (Fast DDS acknowledges on its next heartbeat, every 3 s by default)
 AXIS_NAMES = "xyz"
@@ -462,7 +463,7 @@ def add_arguments(parser) -> None:
                              "YAML file; default: keyboard mode")
     parser.add_argument("--loops", type=positive(int), default=1,
                         help="scripted mode: path repetitions")
-    parser.add_argument("--rate", type=positive(float),
+    parser.add_argument("--rate", type=positive(float, most=MAX_RATE),
                         help=f"publish rate, Hz (default {SCRIPTED_RATE:g} scripted, "
                              f"{KEYBOARD_RATE:g} keyboard republish)")
     parser.add_argument("--step", type=positive(float), default=0.01,
