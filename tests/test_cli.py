@@ -19,3 +19,48 @@ def test_help_prints_usage_and_exits_zero(argv, capsys):
 def test_the_command_list_names_every_benchmark():
     _, listed = SUBCOMMANDS["bench"]
     assert listed.split(": ", 1)[1].split(", ") == list(BENCHMARKS)
+
+
+@pytest.mark.parametrize("option, value", [
+    ("--step", "nan"), ("--rate", "inf"), ("--rate", "1e7"), ("--timeout", "-1")])
+def test_teleop_refuses_numbers_that_mean_nothing(option, value, capsys):
+    """nan passed `> 0` (teleop sent NaN targets); inf or 1e7 Hz never ended."""
+    with pytest.raises(SystemExit) as exit_info:
+        stance(["teleop", "--task", "right_hand", option, value])
+    assert exit_info.value.code == 2
+    assert f"argument {option}: must be" in capsys.readouterr().err
+
+
+def test_check_plan_refuses_a_nan_tolerance(capsys):
+    """A NaN tolerance passed a plan with a 5 cm contact error."""
+    with pytest.raises(SystemExit):
+        stance(["check-plan", "plan.json", "--contact-tolerance", "nan"])
+    assert "must be finite and > 0, got nan" in capsys.readouterr().err
+
+
+def unreadable_bags(root):
+    """Bags the readers cannot read: empty directory, empty file, text, bad metadata."""
+    (root / "empty").mkdir()
+    (root / "zero").mkdir()
+    (root / "zero" / "a.mcap").write_bytes(b"")
+    (root / "text.mcap").write_text("not a bag\n")
+    (root / "metadata").mkdir()
+    (root / "metadata" / "metadata.yaml").write_bytes(b"\xff\xfe not yaml")
+    return {"empty": "no MCAP file in", "zero": "not a readable MCAP file",
+            "text.mcap": "not a readable MCAP file", "metadata": "not rosbag2 metadata"}
+
+
+@pytest.mark.parametrize("command", ["plot", "check-run"])
+def test_unreadable_bags_are_named_not_tracebacks(tmp_path, command, capsys):
+    """mcap's errors (a recorder killed before its summary, a file that is not MCAP) were
+    caught nowhere: stance plot and check-run ended in tracebacks."""
+    for name, message in unreadable_bags(tmp_path).items():
+        assert stance([command, str(tmp_path / name)]) == 2
+        error = capsys.readouterr().err
+        assert f"stance {command}: " in error and message in error, error
+
+
+def test_plot_refuses_a_joint_pattern_that_is_not_a_regex(tmp_path, capsys):
+    (tmp_path / "bag").mkdir()
+    assert stance(["plot", str(tmp_path / "bag"), "--joints", "("]) == 2
+    assert "--joints '(': not a regular expression" in capsys.readouterr().err

@@ -4,28 +4,55 @@ Messages are decoded by mcap_ros2's decoder from the schemas embedded in the fil
 package or rclpy import is needed (``stance plot`` runs anywhere matplotlib does).
 """
 
+import struct
+from contextlib import contextmanager
 from pathlib import Path
 
 import yaml
+from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 
+class BagError(ValueError):
+    """A bag that cannot be read; the message names the file and what is wrong."""
+
+
 def mcap_files(bag):
     """The .mcap files of a bag, in recording order: the file itself, the files listed in a
-    rosbag2 directory's metadata.yaml, or else the directory's *.mcap files sorted by name."""
+    rosbag2 directory's metadata.yaml, or else the directory's *.mcap files sorted by name;
+    BagError when there is none or the metadata cannot be read."""
     bag = Path(bag)
     if bag.is_file():
         return [bag]
     metadata_path = bag / "metadata.yaml"
     if metadata_path.is_file():
-        info = yaml.safe_load(metadata_path.read_text())["rosbag2_bagfile_information"]
-        files = [bag / name for name in info["relative_file_paths"]]
+        try:
+            info = yaml.safe_load(metadata_path.read_text(encoding="utf-8"))
+            files = [bag / name for name in
+                     info["rosbag2_bagfile_information"]["relative_file_paths"]]
+        except (UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError) as error:
+            raise BagError(f"{metadata_path}: not rosbag2 metadata "
+                           f"({type(error).__name__}: {error})") from error
     else:
         files = sorted(bag.glob("*.mcap"))
     if not files:
-        raise FileNotFoundError(f"no MCAP file in {bag}")
+        raise BagError(f"no MCAP file in {bag}")
+    missing = [path for path in files if not path.is_file()]
+    if missing:
+        raise BagError(f"{missing[0]}: listed in {metadata_path} but missing")
     return files
+
+
+@contextmanager
+def _readable(path):
+    """BagError naming the file for what the MCAP reader raises on a corrupt or truncated
+    file (a recorder killed before it wrote the summary, a file that is not MCAP)."""
+    try:
+        yield
+    except (McapError, struct.error) as error:     # struct: a file shorter than a header
+        raise BagError(f"{path}: not a readable MCAP file ({type(error).__name__}: "
+                       f"{error})") from error
 
 
 def read_messages(bag, topics=None, start_time_ns=None):
@@ -34,7 +61,7 @@ def read_messages(bag, topics=None, start_time_ns=None):
     logged from then on (ns since the epoch; default: all)."""
     topics = None if topics is None else list(topics)
     for path in mcap_files(bag):
-        with open(path, "rb") as stream:
+        with open(path, "rb") as stream, _readable(path):
             reader = make_reader(stream, decoder_factories=[DecoderFactory()])
             for _, channel, message, decoded in reader.iter_decoded_messages(
                     topics=topics, start_time=start_time_ns, log_time_order=True):
@@ -43,10 +70,10 @@ def read_messages(bag, topics=None, start_time_ns=None):
 
 def _summaries(bag):
     for path in mcap_files(bag):
-        with open(path, "rb") as stream:
+        with open(path, "rb") as stream, _readable(path):
             summary = make_reader(stream).get_summary()
         if summary is None or summary.statistics is None:
-            raise ValueError(f"{path} has no summary (recording not finished?)")
+            raise BagError(f"{path} has no summary (recording not finished?)")
         yield summary
 
 

@@ -38,13 +38,22 @@ SERIES_GAP = 0.25  # s without a sample that breaks a curve (the task left the s
 
 
 def joint_limits(urdf):
-    """{joint name: (lower, upper)} of the revolute and prismatic joints of a URDF string."""
+    """{joint name: (lower, upper)} of the revolute and prismatic joints of a URDF string;
+    ValueError when it is not XML or a limit is not a number."""
     limits = {}
-    for joint in ET.fromstring(urdf).findall("joint"):  # direct children: not transmissions
+    try:
+        joints = ET.fromstring(urdf).findall("joint")   # direct children: not transmissions
+    except ET.ParseError as error:
+        raise ValueError(f"{ROBOT_DESCRIPTION} is not a URDF: {error}") from None
+    for joint in joints:
         limit = joint.find("limit")
         if joint.get("type") in ("revolute", "prismatic") and limit is not None:
-            limits[joint.get("name")] = (float(limit.get("lower", 0.0)),
-                                         float(limit.get("upper", 0.0)))
+            try:
+                limits[joint.get("name")] = (float(limit.get("lower", 0.0)),
+                                             float(limit.get("upper", 0.0)))
+            except ValueError as error:
+                raise ValueError(f"{ROBOT_DESCRIPTION}: joint {joint.get('name')!r}: "
+                                 f"{error}") from None
     return limits
 
 
@@ -313,9 +322,20 @@ def run(args):
     if not bag.exists():
         print(f"stance plot: {bag} does not exist", file=sys.stderr)
         return 2
+    if args.joints is not None:
+        try:
+            re.compile(args.joints)
+        except re.error as error:
+            print(f"stance plot: --joints {args.joints!r}: not a regular expression "
+                  f"({error})", file=sys.stderr)
+            return 2
     output = Path(args.output) if args.output else (bag if bag.is_dir() else bag.parent)
-    output.mkdir(parents=True, exist_ok=True)
-    data = Run(bag)
+    try:
+        output.mkdir(parents=True, exist_ok=True)
+        data = Run(bag)
+    except (OSError, ValueError) as error:     # bag.BagError: a bag that cannot be read
+        print(f"stance plot: {error}", file=sys.stderr)
+        return 2
     if data.has_joint_states and data.urdf is None:
         print(f"warning: no {ROBOT_DESCRIPTION} in {bag}: joint limits not shown",
               file=sys.stderr)
@@ -335,7 +355,7 @@ def run(args):
             continue
         try:
             draw(path)
-        except LookupError as error:
+        except (LookupError, OSError, ValueError) as error:
             print(f"stance plot: cannot write {name}: {error}", file=sys.stderr)
             failed = True
             continue
