@@ -1,6 +1,7 @@
 """Independent plan verification (stance.planning.verify) and `stance check-plan` /
 `stance plot-plan`, on Talos standing in half_sitting on a floor."""
 
+import json
 import math
 import os
 from dataclasses import replace
@@ -250,6 +251,53 @@ def test_check_plan_exit_codes(plan_files, capsys):
     assert "FAIL" in output.out.splitlines()[2] and "FAIL" not in output.out.splitlines()[1]
     assert "stance 1: no static equilibrium" in output.err
     assert cli.main(["check-plan", str(good.parent / "missing.json")]) == 2
+
+
+def edited_plan_file(source, target, edit):
+    """A copy of a plan file with edit(document) applied."""
+    document = json.loads(source.read_text())
+    edit(document)
+    target.write_text(json.dumps(document))
+    return target
+
+
+MALFORMED_PLANS = [   # edit, what check-plan and plot-plan say; None: plot-plan's own check
+    (lambda d: d["stances"][1]["contacts"][0].update(in_stability="false"),
+     "stances[1].contacts[0].in_stability: expected true or false"),    # read as true
+    (lambda d: d["stances"][1].update(contacts=5), "stances[1]: expected a mapping with a "
+                                                   "contacts list"),   # a TypeError
+    (lambda d: d["stances"][0]["contacts"][0].pop("x"), "stances[0].contacts[0].x: missing"),
+    (lambda d: d.update(scene=5), "scene: expected a string"),
+    (lambda d: d["stances"][1]["contacts"][0].update(spot="nosuch_spot"), None),
+    (lambda d: d["stances"][1].update(q=d["stances"][1]["q"][:10]), None),
+]
+
+
+@pytest.mark.parametrize("edit, message", MALFORMED_PLANS)
+def test_malformed_plan_files_are_named_by_both_commands(plan_files, tmp_path, capsys, edit,
+                                                         message):
+    good, _ = plan_files
+    path = edited_plan_file(good, tmp_path / "edited.json", edit)
+    if message is not None:      # the file is not a plan: neither command goes on
+        for command, extra in (("check-plan", []),
+                               ("plot-plan", ["-o", str(tmp_path / "sheet.png")])):
+            assert cli.main([command, str(path), *extra]) == 2
+            assert f"stance {command}: {path}: {message}" in capsys.readouterr().err
+        return
+    assert cli.main(["check-plan", str(path)]) == 1    # a plan, failing verification
+    capsys.readouterr()
+    assert cli.main(["plot-plan", str(path), "-o", str(tmp_path / "sheet.png")]) == 2
+    assert "stance check-plan tells all that is wrong" in capsys.readouterr().err
+    assert not (tmp_path / "sheet.png").exists()
+
+
+def test_plot_plan_names_an_output_it_cannot_write(plan_files, tmp_path, capsys):
+    good, _ = plan_files
+    for output, reason in ((tmp_path / "sheet.txt", "Format 'txt' is not supported"),
+                           (tmp_path / "missing" / "sheet.png", "No such file")):
+        assert cli.main(["plot-plan", str(good), "-o", str(output)]) == 2
+        error = capsys.readouterr().err
+        assert f"cannot write {output}" in error and reason in error, error
 
 
 def test_plot_plan_writes_a_contact_sheet(plan_files, tmp_path, capsys):

@@ -183,6 +183,11 @@ def run_plot(args) -> int:
     if not plan.stances:
         print(f"stance {PLOT_COMMAND}: the plan has no stance", file=sys.stderr)
         return 1
+    problem = _undrawable(plan, scene, robot)
+    if problem:
+        print(f"stance {PLOT_COMMAND}: {args.plan}: {problem} (stance {CHECK_COMMAND} tells "
+              "all that is wrong)", file=sys.stderr)
+        return 2
     indices = list(range(0, len(plan.stances), max(1, args.every)))
     if indices[-1] != len(plan.stances) - 1:
         indices.append(len(plan.stances) - 1)
@@ -241,7 +246,28 @@ def run_plot(args) -> int:
                     y=1.0 - 0.1 / figure.get_figheight(), va="top")  # in the top margin
     figure.subplots_adjust(left=0.01, right=0.99, bottom=0.8 / figure.get_figheight(),
                            top=1.0 - 0.5 / figure.get_figheight(), wspace=0.05, hspace=0.1)
-    figure.savefig(args.output, dpi=110)
-    plt.close(figure)
+    try:
+        figure.savefig(args.output, dpi=110)
+    except (OSError, ValueError) as error:   # ValueError: a format matplotlib cannot write
+        print(f"stance {PLOT_COMMAND}: cannot write {args.output}: {error}", file=sys.stderr)
+        return 2
+    finally:
+        plt.close(figure)
     print(args.output)
     return 0
+
+
+def _undrawable(plan, scene, robot) -> str:
+    """What keeps a stance of the plan from being drawn (a witness that is not nq finite
+    values, a contact naming a spot or surface the scene lacks), or ''."""
+    from stance.planning.scene import placement_problem
+
+    for index, stance in enumerate(plan.stances):
+        q = np.asarray(stance.q)
+        if q.shape != (robot.model.nq,) or not np.isfinite(q).all():
+            return f"stances[{index}].q: not {robot.model.nq} finite values"
+        for k, contact in enumerate(stance.contacts):
+            problem = placement_problem(scene.surfaces, scene.spots, contact)
+            if problem and problem[0] in (".spot", ".surface"):
+                return f"stances[{index}].contacts[{k}]{problem[0]}: {problem[1]}"
+    return ""

@@ -80,9 +80,33 @@ def contact_to_dict(contact: Contact) -> dict:
             "theta": contact.theta, "in_stability": contact.in_stability}
 
 
-def contact_from_dict(entry: dict) -> Contact:
-    return Contact(str(entry["spot"]), str(entry["surface"]), float(entry["x"]),
-                   float(entry["y"]), float(entry["theta"]), bool(entry.get("in_stability", True)))
+class PlanFileError(ValueError):
+    """A plan file that is not a plan; the message names the file and the field."""
+
+
+def contact_from_dict(entry: dict, where: str = "contact") -> Contact:
+    """A Contact from its dictionary (contact_to_dict's); PlanFileError naming `where` and
+    the field for a missing key, a wrong type or a number that is not finite."""
+    if not isinstance(entry, dict):
+        raise PlanFileError(f"{where}: expected a mapping, got {type(entry).__name__}")
+    missing = [key for key in ("spot", "surface", "x", "y", "theta") if key not in entry]
+    if missing:
+        raise PlanFileError(f"{where}.{missing[0]}: missing")
+    for key in ("spot", "surface"):
+        if not isinstance(entry[key], str):
+            raise PlanFileError(f"{where}.{key}: expected a string")
+    numbers = [_finite(entry[key], f"{where}.{key}") for key in ("x", "y", "theta")]
+    in_stability = entry.get("in_stability", True)
+    if not isinstance(in_stability, bool):     # bool("false") is True
+        raise PlanFileError(f"{where}.in_stability: expected true or false")
+    return Contact(entry["spot"], entry["surface"], *numbers, in_stability)
+
+
+def _finite(value, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+            not math.isfinite(value):
+        raise PlanFileError(f"{where}: expected a finite number, got {value!r}")
+    return float(value)
 
 
 def save_plan(plan: Plan, path: str) -> None:
@@ -98,9 +122,47 @@ def save_plan(plan: Plan, path: str) -> None:
 
 
 def load_plan(path: str) -> Plan:
-    with open(path) as stream:
-        document = json.load(stream)
-    stances = [Stance(tuple(contact_from_dict(c) for c in entry["contacts"]),
-                      np.array(entry["q"], dtype=float), float(entry.get("potential", "nan")))
-               for entry in document["stances"]]
-    return Plan(document["scene"], document["robot"], stances, document.get("statistics", {}))
+    """The plan save_plan wrote; PlanFileError naming the file and the field when it is not
+    one (the witnesses' size is the verifier's business: it knows the robot)."""
+    try:
+        with open(path, encoding="utf-8") as stream:
+            document = json.load(stream)
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise PlanFileError(f"{path}: not a JSON plan file ({error})") from None
+    try:
+        return _plan_from_document(document)
+    except PlanFileError as error:
+        raise PlanFileError(f"{path}: {error}") from None
+
+
+def _plan_from_document(document) -> Plan:
+    if not isinstance(document, dict):
+        raise PlanFileError(f"expected a mapping, got {type(document).__name__}")
+    for key in ("scene", "robot", "stances"):
+        if key not in document:
+            raise PlanFileError(f"{key}: missing")
+    for key in ("scene", "robot"):
+        if not isinstance(document[key], str):
+            raise PlanFileError(f"{key}: expected a string")
+    if not isinstance(document["stances"], list):
+        raise PlanFileError("stances: expected a list")
+    stances = []
+    for index, entry in enumerate(document["stances"]):
+        where = f"stances[{index}]"
+        if not isinstance(entry, dict) or not isinstance(entry.get("contacts"), list):
+            raise PlanFileError(f"{where}: expected a mapping with a contacts list")
+        q = entry.get("q")
+        if not isinstance(q, list) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in q):
+            raise PlanFileError(f"{where}.q: expected a list of numbers")
+        contacts = tuple(contact_from_dict(c, f"{where}.contacts[{k}]")
+                         for k, c in enumerate(entry["contacts"]))
+        potential = entry.get("potential")
+        if potential is not None and (isinstance(potential, bool)
+                                      or not isinstance(potential, (int, float))):
+            raise PlanFileError(f"{where}.potential: expected a number")
+        stances.append(Stance(contacts, np.array(q, dtype=float),
+                              math.nan if potential is None else float(potential)))
+    statistics = document.get("statistics", {})
+    return Plan(document["scene"], document["robot"], stances,
+                statistics if isinstance(statistics, dict) else {})
