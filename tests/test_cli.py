@@ -64,3 +64,18 @@ def test_plot_refuses_a_joint_pattern_that_is_not_a_regex(tmp_path, capsys):
     (tmp_path / "bag").mkdir()
     assert stance(["plot", str(tmp_path / "bag"), "--joints", "("]) == 2
     assert "--joints '(': not a regular expression" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["record", "-o", "{tmp}/bag", "bad topic"], "'bad topic' is not a topic name"),
+    (["record", "-o", "{tmp}/missing/deeper/bag", "/a"], "cannot create"),
+    (["param", "set", "bad name", "strategy", "clamping"], "'bad name' is not a node name"),
+    (["param", "set", "/pik_node", "strategy", "{a: 1}"], "'{a: 1}' is not a parameter value"),
+])
+def test_names_and_values_ros_cannot_take_are_refused_first(tmp_path, capsys, argv, message):
+    """Each raised a traceback (rclpy's name check, a TypeError, FileNotFoundError) or
+    recorded a topic that can never exist with exit 0."""
+    (tmp_path / "missing").write_text("a file where a directory is needed\n")
+    argv = [arg.replace("{tmp}", str(tmp_path)) for arg in argv]
+    assert stance(argv) == 2
+    assert message in capsys.readouterr().err

@@ -17,6 +17,7 @@ from helpers.probe import BackgroundNode
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from stance_msgs.msg import SolverStatus, TaskStatus
+from stance_tools.cli import main as teleop_main
 from stance_tools.teleop import (QUIT_KEYS, ROTATION_KEYS, TRANSLATION_KEYS, KeyboardTeleop,
                                  PathError, ScriptedPath, Target, builtin_path_names,
                                  load_path, parse_path, run_keyboard)
@@ -57,6 +58,26 @@ def test_path_files_and_builtin_names(tmp_path):
         load_path(str(tmp_path / "missing.yaml"))
     with pytest.raises(PathError, match="built-in: circle, reach_limits"):
         load_path("figure_eight")
+
+
+def test_unreadable_or_stalled_paths_are_path_errors(tmp_path):
+    """A non-UTF-8 file raised UnicodeDecodeError; a duration lost in the time sum's rounding
+    (1e-17 s after 1 s) raised in scipy's Slerp (times not strictly increasing)."""
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe")
+    with pytest.raises(PathError, match="not a YAML text file"):
+        load_path(str(binary))
+    stalled = tmp_path / "stalled.yaml"
+    stalled.write_text("- {offset: [0.1, 0, 0], duration: 1.0}\n"
+                       "- {offset: [0.2, 0, 0], duration: 1.0e-17}\n")
+    with pytest.raises(PathError, match="waypoint 1: duration 1e-17 s too short"):
+        ScriptedPath(load_path(str(stalled)))
+
+
+def test_a_task_name_pik_node_cannot_have_is_refused(capsys):
+    """It raised rclpy's invalid topic name deep in the publisher's creation."""
+    assert teleop_main(["teleop", "--task", "a/../b"]) == 2
+    assert "--task 'a/../b' is not a task name" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("name", ["circle", "reach_limits"])

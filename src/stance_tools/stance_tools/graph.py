@@ -27,6 +27,7 @@ from pathlib import Path
 import yaml
 
 from .cli import positive
+from .param import is_parameter_value
 from .processes import signal_group, spawn, stop_processes
 
 DEFAULT_GRAPH = Path(__file__).parent / "data" / "graph.yaml"
@@ -104,7 +105,7 @@ def _parse_node(entry, where: str, base: Path) -> NodeSpec:
     for key, value in parameters.items():
         if not isinstance(key, str) or not PARAMETER_NAME.fullmatch(key):
             raise GraphError(f"{where}.parameters.{key}: not a parameter name")
-        if not _parameter_value(value):
+        if not is_parameter_value(value):
             raise GraphError(f"{where}.parameters.{key}: expected a boolean, number, string "
                              "or list of one of these")
     optional = entry.get("optional", False)
@@ -128,16 +129,6 @@ def _restart_policy(restart, where: str) -> tuple[int, float]:
             not 0.0 <= backoff < math.inf:
         raise GraphError(f"{where}.backoff: expected finite seconds >= 0")
     return max_restarts, float(backoff)
-
-
-def _parameter_value(value) -> bool:
-    """Whether a ROS parameter can take the value (what -p parses as YAML): a boolean, a
-    finite number, a string, or a list of those."""
-    if isinstance(value, list):
-        return all(_parameter_value(item) and not isinstance(item, list) for item in value)
-    if isinstance(value, float):
-        return math.isfinite(value)
-    return isinstance(value, (bool, int, str))
 
 
 def _string(entry: dict, key: str, where: str) -> str:

@@ -10,6 +10,7 @@ the value, 1 with the node's reason when it refuses it or cannot be reached.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from .cli import positive
@@ -27,16 +28,41 @@ def add_arguments(parser) -> None:
                             help="s to wait for the node's parameter services")
 
 
+def is_parameter_value(value) -> bool:
+    """Whether a ROS parameter can take the value (YAML, as -p and this command read it): a
+    boolean, a finite number, a string, or a list of those."""
+    if isinstance(value, list):
+        return all(is_parameter_value(item) and not isinstance(item, list) for item in value)
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return isinstance(value, (bool, int, str))
+
+
 def run(args) -> int:
     import rclpy
+    import yaml
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rclpy.exceptions import InvalidNodeNameException, InvalidServiceNameException
     from rclpy.parameter import get_parameter_value
     from rclpy.parameter_client import AsyncParameterClient
 
+    try:
+        parsed = yaml.safe_load(args.value)
+    except yaml.YAMLError:
+        parsed = args.value         # get_parameter_value takes it as a string too
+    if not is_parameter_value(parsed):
+        print(f"stance param: {args.value!r} is not a parameter value (a boolean, number, "
+              "string or list of one of these)", file=sys.stderr)
+        return 2
     rclpy.init()
     node = rclpy.create_node("stance_param")
     try:
-        client = AsyncParameterClient(node, args.node)
+        try:
+            client = AsyncParameterClient(node, args.node)
+        except (InvalidNodeNameException, InvalidServiceNameException) as error:
+            print(f"stance param: {args.node!r} is not a node name: "
+                  f"{str(error).splitlines()[0].rstrip(':')}", file=sys.stderr)
+            return 2
 
         def answer(future):
             rclpy.spin_until_future_complete(node, future, timeout_sec=args.timeout)

@@ -53,10 +53,12 @@ from ament_index_python.packages import PackageNotFoundError, get_package_share_
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile,
                        ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
+from rclpy.validate_full_topic_name import validate_full_topic_name
 
 from .cli import positive
 
@@ -481,7 +483,7 @@ def add_arguments(parser):
                         help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     parser.add_argument("--discovery-period", type=positive(float), default=0.2, metavar="S",
                         help="seconds between two searches for new topics (default 0.2)")
-    parser.add_argument("--batch-period", type=positive(float), default=0.01, metavar="S",
+    parser.add_argument("--batch-period", type=float, default=0.01, metavar="S",
                         help="seconds between two takes of the messages the readers hold "
                              "(default 0.01, at most 10: a reader holds a whole period; "
                              "0: no pause, about one executor wake-up per message)")
@@ -494,10 +496,19 @@ def run(args):
     if not 0.0 <= args.batch_period <= 10.0:
         print("stance record: --batch-period must be within [0, 10] s", file=sys.stderr)
         return 2
+    for topic in args.topics:
+        try:
+            validate_full_topic_name("/" + topic.lstrip("/"))
+        except InvalidTopicNameException as error:
+            print(f"stance record: {topic!r} is not a topic name: {error}", file=sys.stderr)
+            return 2
     try:
         bag = BagWriter(args.output)
     except FileExistsError:
         print(f"stance record: {args.output} already exists", file=sys.stderr)
+        return 2
+    except OSError as error:
+        print(f"stance record: cannot create {args.output}: {error.strerror}", file=sys.stderr)
         return 2
 
     stop = threading.Event()

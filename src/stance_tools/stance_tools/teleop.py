@@ -42,6 +42,7 @@ from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from scipy.spatial.transform import Rotation, Slerp
+from stance.stack import MAX_NAME_LENGTH, NAME_PATTERN
 from stance_msgs.msg import SolverStatus
 
 from .cli import positive
@@ -142,10 +143,13 @@ def load_path(spec: str) -> list:
     if os.path.sep in spec or spec.endswith((".yaml", ".yml")):
         source = spec
         try:
-            with open(spec) as path_file:
+            with open(spec, encoding="utf-8") as path_file:
                 text = path_file.read()
         except OSError as error:
             raise PathError(f"{spec}: cannot read: {error.strerror}") from None
+        except UnicodeDecodeError as error:
+            raise PathError(f"{spec}: not a YAML text file (not UTF-8: byte "
+                            f"{error.start})") from None
     else:
         names = builtin_path_names()
         if spec not in names:
@@ -170,6 +174,11 @@ class ScriptedPath:
         self.waypoints = waypoints
         self.arrival_times = np.cumsum([waypoint.duration for waypoint in waypoints])
         self._times = np.concatenate([[0.0], self.arrival_times])
+        stalled = np.flatnonzero(np.diff(self._times) <= 0.0)
+        if len(stalled):     # a duration lost in the sum's rounding (1e-17 after 1 s)
+            raise PathError(f"waypoint {stalled[0]}: duration "
+                            f"{waypoints[stalled[0]].duration:g} s too short to advance the "
+                            f"time after {self._times[stalled[0]]:g} s")
         self._offsets = np.vstack([np.zeros(3)] + [waypoint.offset for waypoint in waypoints])
         self._slerp = Slerp(self._times, Rotation.concatenate(
             [Rotation.identity()] + [waypoint.rotation for waypoint in waypoints]))
@@ -475,6 +484,11 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    if not NAME_PATTERN.fullmatch(args.task) or len(args.task) > MAX_NAME_LENGTH:
+        print(f"stance teleop: --task {args.task!r} is not a task name (pik_node's names "
+              f"match {NAME_PATTERN.pattern}, at most {MAX_NAME_LENGTH} characters)",
+              file=sys.stderr)
+        return 2
     try:
         path = ScriptedPath(load_path(args.path)) if args.path else None
     except PathError as error:
