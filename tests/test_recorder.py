@@ -311,6 +311,29 @@ def test_levels_of_a_changing_stack_merge_per_priority_and_break_at_gaps():
     assert np.isnan(times[2]) and np.isnan(values[2]) and len(times) == 5
 
 
+def test_messages_a_late_publisher_sent_before_the_match_are_listed():
+    """A topic that appeared during the recording, one publisher whose first message
+    received is its 27th: 26 were published while recording and never delivered. The
+    summary used to say nothing (received 361, lost 0). Unknown with several publishers;
+    not said of a topic there from the start (its earlier messages are not the
+    recording's)."""
+    def counters(appeared, single, first_sequence=27):
+        return TopicCounters("/seq", "std_msgs/msg/String", received=361, written=361,
+                             single_publisher=single, appeared_while_recording=appeared,
+                             first_sequence=first_sequence)
+
+    late = counters(True, True)
+    assert late.published_before_match() == 26
+    table, complete = summary_table(SimpleNamespace(topics={"a": late}, skipped={}))
+    assert "/seq: appeared during the recording; its publisher published 26 message(s) " \
+           "before DDS matched it" in table and "the bag starts at its message 27" in table
+    assert complete     # listed, not a loss: DDS never offered them to the recorder
+    for quiet in (counters(False, True), counters(True, False), counters(True, True, 1)):
+        assert quiet.published_before_match() == 0
+        assert "appeared during" not in summary_table(
+            SimpleNamespace(topics={"a": quiet}, skipped={}))[0]
+
+
 def test_latched_history_gone_before_the_recorder_joined_is_not_a_loss():
     """A depth-1 latched publisher that published twice before the match: DDS reports the
     first as lost, the first message received is sequence 2. Only that one is forgiven."""
@@ -360,3 +383,37 @@ def test_a_publisher_the_recording_cannot_match_makes_it_incomplete(processes, t
     assert "1 publisher(s) offered a QoS incompatible with the recording's (durability" in \
         summary, summary
     assert "INCOMPLETE" in summary
+
+
+def test_a_publisher_started_during_the_recording_has_its_unmatched_start_listed(processes,
+                                                                                 tmp_path):
+    """Over DDS: a volatile publisher created after the recorder's discovery grace publishes
+    numbered messages at once, before the match; the bag starts at the first one delivered
+    and the summary names how many came before it (they used to go unmentioned)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from stance_tools.background_node import BackgroundNode
+    from stance_tools.record import DISCOVERY_GRACE
+
+    node = BackgroundNode("late_publisher")
+    try:
+        recorder = processes.start("stance", "record", "-o", str(tmp_path / "bag"),
+                                   "/late_test", "--discovery-period", "0.05", name="recorder")
+        wait_until(lambda: "stance_recorder" in node.node.get_node_names(), 30,
+                   what="the recorder's node")
+        time.sleep(DISCOVERY_GRACE + 1.0)    # its start is before its node is seen
+        publisher = node.node.create_publisher(
+            String, "/late_test", QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        node.start_spinning()
+        for index in range(1, 401):         # 2 s at 200 Hz, from the publisher's creation
+            publisher.publish(String(data=str(index)))
+            time.sleep(0.005)
+        time.sleep(0.5)
+        assert processes.stop(recorder) == 0, log_text(recorder)
+    finally:
+        node.close()
+    numbers = [int(message.data) for _, _, message in
+               read_messages(tmp_path / "bag", ["/late_test"])]
+    assert numbers and numbers == list(range(numbers[0], 401)), numbers[:5]
+    assert numbers[0] > 1, "the match came before the first message: nothing to list"
+    assert (f"/late_test: appeared during the recording; its publisher published "
+            f"{numbers[0] - 1} message(s) before DDS matched it") in log_text(recorder)

@@ -25,6 +25,12 @@ Design, chosen so that a recording never loses a message without saying so:
   on a reliable subscription; DDS then delivers none of its messages). On a latched
   topic with one publisher, messages published before the recorder joined and no longer in
   that publisher's history are reported by DDS as lost: they are listed, not counted.
+- A topic that appears during the recording (first seen DISCOVERY_GRACE s after the start):
+  its publisher's messages published before DDS matched it with the recorder are never
+  delivered (a volatile publisher does not wait for subscribers, as with ros2 bag). With one
+  publisher, the first message's publication sequence number tells how many: they are
+  listed (not counted as lost: a graph started with the recorder, as `stance demo` does,
+  would otherwise always be incomplete); with several, rclpy does not say whose number it is.
 
 Output: ``OUTDIR/OUTDIR_0.mcap`` and ``OUTDIR/metadata.yaml`` as written by
 ``ros2 bag record -s mcap`` in Jazzy (metadata version 9), so ``ros2 bag info/play`` and
@@ -252,6 +258,9 @@ def import_message_class(type_name):
 
 TAKEN_PER_CALL = 4096      # messages taken from one reader before the next reader's turn
 STOP_DRAIN_SECONDS = 1.0   # at exit, time to empty the readers before unsubscribing
+# s after the start past which a topic first seen appeared during the recording: DDS
+# discovery on this machine finds the publishers already running well within it
+DISCOVERY_GRACE = 2.0
 
 
 def is_hidden(topic):
@@ -262,9 +271,14 @@ def is_hidden(topic):
 @dataclass
 class TopicCounters:
     """Per-topic accounting. received: delivered to the callback; lost: reported by the RMW
-    (None if it cannot report); failed: could not be written. single_latched_publisher: a
-    transient-local topic with one publisher, whose first message received tells (by its
-    publication sequence number) how many were published before the recorder joined."""
+    (None if it cannot report); failed: could not be written. single_publisher: one
+    publisher when subscribed, whose first message received tells (by its publication
+    sequence number) how many it published before the recorder matched it;
+    single_latched_publisher: the same, transient local. appeared_while_recording: the
+    topic was first seen more than DISCOVERY_GRACE s after the recorder started, so its
+    publisher started during the recording, and what it published before the match was
+    published while recording (a topic seen earlier may belong to a publisher that ran long
+    before: its earlier messages are not the recording's)."""
     name: str
     type: str
     subscription: object = field(default=None, repr=False)
@@ -273,6 +287,8 @@ class TopicCounters:
     failed: int = 0
     lost: int | None = 0
     single_latched_publisher: bool = False
+    single_publisher: bool = False
+    appeared_while_recording: bool = False
     first_sequence: int | None = None
     unread_at_exit: bool = False   # its reader still held messages after STOP_DRAIN_SECONDS
     incompatible_publishers: int = 0   # publishers DDS did not match (incompatible QoS)
@@ -285,6 +301,16 @@ class TopicCounters:
         if not self.lost or not self.single_latched_publisher or not self.first_sequence:
             return 0
         return min(self.lost, self.first_sequence - 1)
+
+    def published_before_match(self) -> int:
+        """Messages a topic that appeared during the recording had published before DDS
+        matched its one publisher with the recorder (a volatile publisher does not wait for
+        subscribers: they are never delivered), 0 when unknown (several publishers: the
+        sequence numbers are per publisher, and rclpy does not say whose)."""
+        if not (self.appeared_while_recording and self.single_publisher
+                and self.first_sequence):
+            return 0
+        return self.first_sequence - 1
 
     def lost_while_recording(self) -> int | None:
         return None if self.lost is None else self.lost - self.lost_before_joining()
@@ -303,9 +329,11 @@ class Recorder:
         self._writer = threading.Thread(target=self._write_loop, name="bag-writer", daemon=True)
         self.topics = {}
         self.skipped = {}  # topic -> why it could not be recorded
+        self._started = math.inf        # time.monotonic() of start()
 
     def start(self):
         self._writer.start()
+        self._started = time.monotonic()
         self.discover()
 
     def discover(self):
@@ -337,8 +365,11 @@ class Recorder:
             log.error(f"not recording {name}: {self.skipped[name]}")
             return
         qos = subscription_qos(publishers)
-        counters = TopicCounters(name, type_name, single_latched_publisher=(
-            len(publishers) == 1 and qos.durability == DurabilityPolicy.TRANSIENT_LOCAL))
+        counters = TopicCounters(
+            name, type_name, single_publisher=len(publishers) == 1,
+            single_latched_publisher=(len(publishers) == 1 and
+                                      qos.durability == DurabilityPolicy.TRANSIENT_LOCAL),
+            appeared_while_recording=time.monotonic() - self._started > DISCOVERY_GRACE)
         callback = partial(self._on_message, counters)
         events = {"incompatible_qos": partial(self._on_incompatible, counters),
                   "message_lost": partial(self._on_lost, counters)}
@@ -462,7 +493,12 @@ def summary_table(recorder):
             notes.append(f"{counters.name}: messages still arrived faster than they were "
                          f"taken {STOP_DRAIN_SECONDS:g} s after the stop; the rest is not "
                          f"recorded")
-        if before := counters.lost_before_joining():
+        if missed := counters.published_before_match():
+            notes.append(f"{counters.name}: appeared during the recording; its publisher "
+                         f"published {missed} message(s) before DDS matched it with the "
+                         f"recorder (not delivered, not recorded: the bag starts at its "
+                         f"message {counters.first_sequence})")
+        elif before := counters.lost_before_joining():
             notes.append(f"{counters.name}: {before} message(s) "
                          f"published before the recorder joined were no longer in the "
                          f"publisher's history (reported lost by DDS, not counted)")
