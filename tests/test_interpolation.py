@@ -204,6 +204,10 @@ def test_plans_without_a_transition_or_with_a_witness_not_finite_are_refused(fla
     stances = [plan.stances[0], Stance(plan.stances[1].contacts, broken)]
     with pytest.raises(ValueError, match="stance 1: the witness is not 39 finite values"):
         planner.interpolate(Plan(plan.scene, plan.robot, stances))
+    unknown = [plan.stances[0], Stance((Contact("nose", "floor", 0.0, 0.0, 0.0),),
+                                       plan.stances[1].q)]          # scipy's error before
+    with pytest.raises(ValueError, match="stance 1: contacts.0..spot: unknown spot 'nose'"):
+        planner.interpolate(Plan(plan.scene, plan.robot, unknown))
 
 
 @pytest.mark.parametrize("keywords, message", [

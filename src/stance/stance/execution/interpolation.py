@@ -37,6 +37,7 @@ from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..planning.posture import PostureGenerator, PostureSettings, ReferencePosture
+from ..planning.scene import placement_problem
 
 LIFT = 0.05    # m: default length of the straight lines leaving and entering a contact
 # m: clearance required at the samples (the planner's stances use 5 mm): the moving body's
@@ -329,8 +330,8 @@ class TransitionPlanner:
 
     def interpolate(self, plan) -> InterpolatedPlan:
         """The whole plan as one sampled path (raises InterpolationError on a failure;
-        ValueError for fewer than two stances or a witness that is not nq finite
-        values)."""
+        ValueError for fewer than two stances, a witness that is not nq finite values or a
+        contact off the scene: scene.placement_problem)."""
         stances = plan.stances
         if len(stances) < 2:
             raise ValueError(f"a plan of {len(stances)} stance(s) has no transition to "
@@ -340,6 +341,11 @@ class TransitionPlanner:
             q = np.asarray(stance.q, dtype=float)
             if q.shape != (nq,) or not np.isfinite(q).all():
                 raise ValueError(f"stance {index}: the witness is not {nq} finite values")
+            for k, contact in enumerate(stance.contacts):
+                problem = placement_problem(self.scene.surfaces, self.scene.spots, contact)
+                if problem:
+                    raise ValueError(f"stance {index}: contacts[{k}]{problem[0]}: "
+                                     f"{problem[1]}")
         results = [self.transition(index, first, second)
                    for index, (first, second) in enumerate(zip(stances[:-1], stances[1:]))]
         return assemble(stances, self.steps, results)
