@@ -49,6 +49,14 @@ class Script:
             self.node._arrival = (msg, name, None)
             self.node._wakeup.notify_all()
 
+    def during_preparation(self, first, second):
+        """`second` arrives while `first` is being verified; returns once both executions
+        or rejections are over, nothing left to prepare or execute."""
+        self.arrive(first)
+        wait_until(self.verifying.is_set, 5, what=f"{first} verified")
+        self.arrive(second)
+        wait_until(lambda: self.executed and self.idle(), 10, what="an execution")
+
     def idle(self) -> bool:
         node = self.node
         with node._wakeup:
@@ -93,10 +101,7 @@ def test_a_plan_ready_goes_on_when_the_newer_one_is_rejected(stubbed):
     """A is prepared while B arrives; B fails: A executes once, and no status says failed
     (A used to be dropped for B, then B failed: nothing ran)."""
     with stubbed({"A": 0.3, "bad B": 0.3}) as script:
-        script.arrive("A")
-        wait_until(script.verifying.is_set, 5, what="A verified")
-        script.arrive("bad B")
-        wait_until(lambda: script.executed and script.idle(), 10, what="A executed")
+        script.during_preparation("A", "bad B")
         assert script.executed == ["A"]
         rejection = next(s for s in script.statuses if "rejected" in s)
         assert rejection.startswith("interpolating: a newer plan was rejected (fails "
@@ -108,10 +113,7 @@ def test_a_plan_ready_goes_on_when_the_newer_one_is_rejected(stubbed):
 def test_a_newer_plan_ready_replaces_the_one_held(stubbed):
     """A is prepared while B arrives; B is ready too: only B executes."""
     with stubbed({"A": 0.3, "B": 0.3}) as script:
-        script.arrive("A")
-        wait_until(script.verifying.is_set, 5, what="A verified")
-        script.arrive("B")
-        wait_until(lambda: script.executed and script.idle(), 10, what="B executed")
+        script.during_preparation("A", "B")
         assert script.executed == ["B"]
         assert any(s.startswith("interpolating: a newer plan of 0 stances on scene 'B', n = "
                                 "20 is being prepared") for s in script.statuses), \

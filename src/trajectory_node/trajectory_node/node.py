@@ -395,16 +395,10 @@ class TrajectoryNode(Node):
         plan prepared (ready, or handed over and not yet taken), or when
         `preparing_goes_on` (the rejected plan is not the preparer's own) one the preparer
         works on; `failed` when none does."""
-        with self._status_lock:
-            executing, prepared = self._under_way(preparing_goes_on)
-            if executing:
-                self._status("executing", f"a newer plan was rejected ({error}); this one "
-                                          "goes on")
-            elif prepared:
-                self._status("interpolating", f"a newer plan was rejected ({error}); the "
-                                              "plan received before it goes on")
-            else:
-                self._status("failed", f"plan rejected: {error}")
+        self._status_by_what_goes_on(
+            preparing_goes_on, f"a newer plan was rejected ({error}); this one goes on",
+            f"a newer plan was rejected ({error}); the plan received before it goes on",
+            ("failed", f"plan rejected: {error}"))
 
     def _has_pending(self) -> bool:
         with self._wakeup:
@@ -461,16 +455,11 @@ class TrajectoryNode(Node):
         """The Prepared plan (plan, scene: msg's, converted), None when rejected (said in
         the status: _reject_plan)."""
         what = f"plan of {len(msg.stances)} stances on scene {msg.scene!r}, n = {self.steps}"
-        with self._status_lock:
-            executing, prepared = self._under_way(False)
-            if executing:
-                self._status("executing", f"a newer {what} is being prepared: it takes over "
-                                          "at the end of a transition once ready")
-            elif prepared:
-                self._status("interpolating", f"a newer {what} is being prepared: it "
-                                              "replaces the one received before it once ready")
-            else:
-                self._status("interpolating", what)
+        self._status_by_what_goes_on(
+            False, f"a newer {what} is being prepared: it takes over at the end of a "
+                   "transition once ready",
+            f"a newer {what} is being prepared: it replaces the one received before it once "
+            "ready", ("interpolating", what))
         try:
             _require_verified(plan, scene, self.robot)
             planner = TransitionPlanner(self.robot, scene, CollisionModel(self.robot, scene),
@@ -772,15 +761,25 @@ class TrajectoryNode(Node):
             else:
                 self.get_logger().info(text)
 
-    def _under_way(self, preparing_counts: bool) -> tuple:
-        """(a plan executed, a plan prepared: ready, handed over and not taken yet, or when
-        `preparing_counts` one the preparer works on), from the flags and the last status
-        (an execution that said `done` or `failed` is over); call holding _status_lock."""
-        with self._wakeup:
-            executing = self._executing and self._state not in ("done", "failed")
-            prepared = self._ready is not None or self._pending is not None or \
-                (preparing_counts and self._preparing)
-        return executing, prepared
+    def _status_by_what_goes_on(self, preparing_counts: bool, executing: str, prepared: str,
+                                alone: tuple):
+        """Publish `executing` (state executing) while a plan executes, else `prepared`
+        (state interpolating) while one is prepared (ready, handed over and not taken yet,
+        or when `preparing_counts` one the preparer works on), else alone = (state,
+        message): decided from the flags and the last status (an execution that said
+        `done` or `failed` is over) and published under the status lock, before any other
+        thread's status."""
+        with self._status_lock:
+            with self._wakeup:
+                is_executing = self._executing and self._state not in ("done", "failed")
+                is_prepared = self._ready is not None or self._pending is not None or \
+                    (preparing_counts and self._preparing)
+            if is_executing:
+                self._status("executing", executing)
+            elif is_prepared:
+                self._status("interpolating", prepared)
+            else:
+                self._status(*alone)
 
 
 def _require_verified(plan, scene, robot, shown: int = 3) -> None:
