@@ -139,8 +139,14 @@ def test_switch_during_a_ramp_keeps_the_blend_continuous(gate):
 def test_unsupported_stance_and_unknown_surface_are_refused(gate):
     with pytest.raises(ValueError, match="no supporting contact"):
         gate.support(3, (HAND.with_stability(False),))
-    with pytest.raises(KeyError):
+    # a bare KeyError before; a NaN contact on the flat floor was classed non-coplanar
+    with pytest.raises(ValueError, match="stance 0: contact .*@no_such_surface: unknown "
+                                         "surface"):
         gate.support(0, (dataclasses.replace(HAND, surface="no_such_surface"),))
+    with pytest.raises(ValueError, match="unknown spot"):
+        gate.support(0, (dataclasses.replace(HAND, spot="nose"),))
+    with pytest.raises(ValueError, match="x, y or theta not finite"):
+        gate.support(0, FEET[:1] + (dataclasses.replace(FEET[1], x=math.nan),))
     with pytest.raises(ValueError, match="ramp_time"):
         StabilizerGate(None, ramp_time=0.0)
     with pytest.raises(ValueError, match="angle_tolerance"):

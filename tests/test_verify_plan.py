@@ -293,11 +293,17 @@ def test_malformed_plan_files_are_named_by_both_commands(plan_files, tmp_path, c
 
 def test_plot_plan_names_an_output_it_cannot_write(plan_files, tmp_path, capsys):
     good, _ = plan_files
+    (tmp_path / "folder.png").mkdir()
     for output, reason in ((tmp_path / "sheet.txt", "Format 'txt' is not supported"),
-                           (tmp_path / "missing" / "sheet.png", "No such file")):
+                           (tmp_path / "missing" / "sheet.png", "No such file"),
+                           (tmp_path / "folder.png", "is a directory")):
         assert cli.main(["plot-plan", str(good), "-o", str(output)]) == 2
         error = capsys.readouterr().err
         assert f"cannot write {output}" in error and reason in error, error
+    # without a suffix matplotlib writes a PNG named with one: the name printed is that one
+    assert cli.main(["plot-plan", str(good), "-o", str(tmp_path / "sheet")]) == 0
+    assert capsys.readouterr().out.strip() == str(tmp_path / "sheet.png")
+    assert (tmp_path / "sheet.png").is_file()
 
 
 def test_plot_plan_writes_a_contact_sheet(plan_files, tmp_path, capsys):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 
@@ -246,14 +247,19 @@ def run_plot(args) -> int:
                     y=1.0 - 0.1 / figure.get_figheight(), va="top")  # in the top margin
     figure.subplots_adjust(left=0.01, right=0.99, bottom=0.8 / figure.get_figheight(),
                            top=1.0 - 0.5 / figure.get_figheight(), wspace=0.05, hspace=0.1)
+    output = Path(args.output)
+    if not output.suffix:           # what matplotlib writes: the name the user sees
+        output = output.with_suffix(".png")
     try:
-        figure.savefig(args.output, dpi=110)
+        if output.is_dir():
+            raise IsADirectoryError(f"{output} is a directory")
+        figure.savefig(output, dpi=110)
     except (OSError, ValueError) as error:   # ValueError: a format matplotlib cannot write
-        print(f"stance {PLOT_COMMAND}: cannot write {args.output}: {error}", file=sys.stderr)
+        print(f"stance {PLOT_COMMAND}: cannot write {output}: {error}", file=sys.stderr)
         return 2
     finally:
         plt.close(figure)
-    print(args.output)
+    print(output)
     return 0
 
 

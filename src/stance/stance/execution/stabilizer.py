@@ -129,11 +129,21 @@ class StabilizerGate:
 
     def support(self, index: int, contacts) -> Support:
         """Support of stance `index` from all its contacts (only in_stability ones count).
-        Raises ValueError when none supports; KeyError for a surface or spot the scene
-        lacks."""
+        Raises ValueError when none supports, or for a contact on a surface or spot the
+        scene lacks or with numbers that are not finite (a NaN contact on a flat floor was
+        classed non-coplanar: the stabilizer would have switched off)."""
         supporting = [c for c in contacts if c.in_stability]
         if not supporting:
             raise ValueError(f"stance {index} has no supporting contact")
+        for contact in supporting:
+            where = f"stance {index}: contact {contact.spot}@{contact.surface}"
+            if contact.surface not in self.scene.surfaces:
+                raise ValueError(f"{where}: unknown surface")
+            if contact.spot not in self.scene.spots:
+                raise ValueError(f"{where}: unknown spot")
+            if not all(math.isfinite(value) for value in (contact.x, contact.y,
+                                                          contact.theta)):
+                raise ValueError(f"{where}: x, y or theta not finite")
         coplanar = are_coplanar(supporting, self.scene, self.angle_tolerance,
                                 self.distance_tolerance)
         return Support(index, coplanar, frozenset(c.pair for c in supporting))
