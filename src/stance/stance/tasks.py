@@ -418,13 +418,10 @@ class SupportTask(Task):
 
     def set_target(self, vertices) -> None:
         """Set the polygon from >= 3 xy vertices (m, world frame) spanning a nonzero area."""
-        points = require_finite(vertices, f"polygon of task {self.name!r}")
+        points = require_within_reach(vertices, f"polygon of task {self.name!r}")
         if points.ndim != 2 or points.shape[1] != 2 or len(points) < 3:
             raise TargetError(f"polygon of task {self.name!r} needs >= 3 xy vertices, "
                               f"got shape {points.shape}")
-        if np.abs(points).max() > MAX_COORDINATE:
-            raise TargetError(f"polygon of task {self.name!r} has a vertex beyond "
-                              f"{MAX_COORDINATE:g} m")
         try:
             hull = ConvexHull(points)
         except QhullError as error:

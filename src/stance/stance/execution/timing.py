@@ -151,7 +151,7 @@ def sinusoidal_trajectory(robot, q: np.ndarray, rest_samples, velocity_scale: fl
     or per limited joint; the paper has none) the duration also keeps
     |x' p'' + x'' p'^2| under it (to compare with time_optimal_trajectory)."""
     velocity = _velocity(robot, velocity_scale)
-    if acceleration_limit is not None:
+    acceleration = None if acceleration_limit is None else \
         _per_joint(acceleration_limit, velocity)
     pieces, laws = _rest_pieces(robot.model, q, rest_samples), []
     for piece in pieces:
@@ -165,12 +165,12 @@ def sinusoidal_trajectory(robot, q: np.ndarray, rest_samples, velocity_scale: fl
         first = piece.dx(p)[:, robot.limited_v_index]
         speed = m * (1.0 - np.cos(2 * np.pi * tau))           # T * p_dot
         duration = float(np.max(speed[:, None] * np.abs(first) / velocity))
-        if acceleration_limit is not None:
+        if acceleration is not None:
             push = m * 2 * np.pi * np.sin(2 * np.pi * tau)     # T^2 * p_ddot
             joint = [first * push[:, None] + piece.ddx(p + side)[:, robot.limited_v_index]
                      * (speed ** 2)[:, None] for side in (-1e-9, 1e-9)]  # T^2 * joint acc.
             duration = max(duration, math.sqrt(float(np.max(
-                np.abs(joint) / _per_joint(acceleration_limit, velocity)))))
+                np.abs(joint) / acceleration))))
         laws.append(_SinusoidalLaw(m, max(duration, 1e-9)))
     return _assemble(pieces, laws)
 

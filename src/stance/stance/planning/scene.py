@@ -18,6 +18,7 @@ import pinocchio as pin
 
 from ..tasks import MAX_COORDINATE
 from ..yaml_file import load_yaml_file
+from .potential import RoughTrajectory
 
 DEFAULT_POTENTIAL_SLOPE = 10.0
 MAX_NUMBER = MAX_COORDINATE   # m, rad or unitless: a scene's numbers stay below it in magnitude
@@ -211,7 +212,6 @@ class _SceneParser:
                                  for i, entry in enumerate(postures)])
         potential_slope = self.number(fields.get("potential_slope", DEFAULT_POTENTIAL_SLOPE),
                                       "potential_slope", positive=True)
-        from .potential import RoughTrajectory
         try:    # the planner's rough trajectory through them: bases apart, turns bounded
             RoughTrajectory(self.robot.model, key_postures, k=potential_slope)
         except ValueError as error:
