@@ -14,6 +14,10 @@ from stance_msgs.srv import SetStack, SetTaskEnabled
 from stance_tools.background_node import BackgroundNode
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# pik_node's 500 Hz streams: 2 s of queue. At depth 10 a probe slowed by a loaded machine
+# had the reader overwrite statuses it had not taken (a CI run lost the first ones after a
+# new support polygon, the only ones with the CoM far outside it).
+STREAMS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class PikProbe(BackgroundNode):
@@ -25,8 +29,8 @@ class PikProbe(BackgroundNode):
         self.joint_states = []
         self.statuses = []
         self.node.create_subscription(JointState, "/joint_states", self._on_joint_state,
-                                      RELIABLE)
-        self.node.create_subscription(SolverStatus, "/pik/status", self._on_status, RELIABLE)
+                                      STREAMS)
+        self.node.create_subscription(SolverStatus, "/pik/status", self._on_status, STREAMS)
         self.set_stack_client = self.node.create_client(SetStack, "/pik/set_stack")
         self.set_enabled_client = self.node.create_client(SetTaskEnabled,
                                                           "/pik/set_task_enabled")
