@@ -9,12 +9,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
-from helpers.limit_runs import bound_excess, swing_excess, talos_group_run
+from helpers.limit_runs import bound_excess, swing_excess, talos_group_run, twist_excess
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from stance.pik import PIKSolver
 from stance.robot import Robot
+from stance.stack import TaskSpec
 from stance.swing import (JointGroupLimit, LimitFileError, limit_file_path, load_limit_file,
                           parse_limits, rotation_exp, rotation_from_swing_twist,
                           rotation_log, swing_twist)
@@ -308,3 +309,29 @@ def test_warm_up_compiles_what_a_group_at_its_limit_needs():
                           text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "True"
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+@pytest.mark.parametrize("beyond", [1.2, 1.5, 1.8, 2.0])
+def test_a_hip_turned_past_a_half_turn_comes_back(talos, groups, beyond, hierarchy):
+    """The right hip pitch `beyond` rad under its URDF bound (-2.095): the thigh points up
+    past the half turn, where the swing wraps. The way back within the bound takes the bone
+    through straight up, so the swing grows while the pitch returns: the joint's own bound
+    never lets it go further out, and once it is back the whole group ends inside."""
+    model = next(model for model in groups if model.name == "right_hip")
+    pitch = model.q_index[2]
+    q = talos.initial_configuration()
+    q[pitch] = model.bounds.lower[2] - beyond
+    solver = PIKSolver(talos, strategy="progressive", limit_models=groups, dt=0.01,
+                       hierarchy=hierarchy)
+    solver.set_stack([TaskSpec("com", "com", priority=0, gain=0.2)], q)
+    excess = bound_excess(model, q)
+    for _ in range(300):
+        previous, q = excess, solver.step(q).q
+        excess = bound_excess(model, q)
+        assert excess <= previous + BOUND_TOLERANCE
+        if previous > 0.0:
+            assert excess < previous, "the pitch stopped on its way back"
+    assert excess <= BOUND_TOLERANCE
+    assert swing_excess(model, q) <= SWING_TOLERANCE
+    assert twist_excess(model, q) <= BOUND_TOLERANCE

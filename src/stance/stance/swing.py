@@ -828,6 +828,7 @@ def _group_keep_inside(group, q, q_next):
     for j in range(count):
         angles[j], following[j] = q[q_index[j]], q_next[q_index[j]]
     keep_inside_bounds(angles, following, local, lower, upper)
+    returned = following.copy()     # joints outside their bounds keep their way back
     s, theta = swing_twist(_group_rotation(placements, axis_index, angles)[0])
     distance = _domain_distance(rule[0], s)
     if _may_reach(s, theta, distance, np.sum(np.abs(following - angles)), 0.0, twist_table):
@@ -838,7 +839,7 @@ def _group_keep_inside(group, q, q_next):
             if not changed:
                 break
             following = _group_angles(placements, axis_index, rotation, following, local)
-            keep_inside_bounds(angles, following, local, lower, upper)
+            keep_inside_bounds(returned, following, local, lower, upper)
     for j in range(count):
         q_next[q_index[j]] = following[j]
 
@@ -928,7 +929,9 @@ class JointGroupLimit(SwingTwistRule):
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's group rotation, then its joints (in place), into the limits
         without moving either further out than q (alternately, a few rounds: the bounds
-        have the last word)."""
+        have the last word). A joint beyond its own bound keeps the way back q_next gives
+        it, even where the swing then grows: a group turned past a half turn (a hip pitch
+        far past its bound) can only come back through the bone pointing straight up."""
         _group_keep_inside(self.kernel_arguments, q, q_next)
 
 
