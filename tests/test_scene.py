@@ -187,6 +187,7 @@ def _restrict_spot_surfaces(document):
 
 MALFORMED = [
     (_delete("name"), "name", "missing"),
+    (_set("robot", "ur5"), "robot", "the scene is for 'ur5', the robot given is 'talos'"),
     (_set("colour", "red"), "colour", "unknown key"),
     (_set("surfaces", {"floor": 1}), "surfaces", "must be a list"),
     (_set("surfaces.0.polygon", [[0, 0], [0, 1], [1, 1], [1, 0]]), "surfaces[0].polygon",

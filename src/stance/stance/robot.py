@@ -17,6 +17,11 @@ class RobotModelError(ValueError):
     """The robot model cannot be loaded or a name does not exist in it."""
 
 
+def is_urdf_path(spec: str) -> bool:
+    """Whether a robot spec (Robot.load's) is a URDF file's path rather than a name."""
+    return spec.endswith(".urdf") or os.path.sep in spec
+
+
 @dataclass
 class Robot:
     """A Pinocchio model plus what the IK needs to know about its joints.
@@ -28,6 +33,8 @@ class Robot:
         reference_configurations: named configurations, e.g. ``half_sitting`` from the SRDF.
         limit_file: YAML of swing and ball-and-socket joint limits shipped with the model
             (stance.swing.load_limit_file), or None.
+        name: the robot's name where it has one (an example-robot-data name or
+            `mannequin`, as Robot.load takes them), None for a URDF file.
     """
 
     model: pin.Model
@@ -35,6 +42,7 @@ class Robot:
     floating_base: bool
     reference_configurations: dict = field(default_factory=dict)
     limit_file: str | None = None
+    name: str | None = None
 
     def __post_init__(self):
         self.data = self.model.createData()
@@ -80,7 +88,10 @@ class Robot:
         if loader.srdf_filename:
             srdf_path = os.path.normpath(
                 os.path.join(root, loader.path, loader.srdf_subpath, loader.srdf_filename))
-        return cls.from_urdf(urdf_path, floating_base=bool(loader.free_flyer), srdf_path=srdf_path)
+        robot = cls.from_urdf(urdf_path, floating_base=bool(loader.free_flyer),
+                              srdf_path=srdf_path)
+        robot.name = name
+        return robot
 
     @classmethod
     def from_urdf(cls, urdf_path: str, floating_base: bool = True,
@@ -117,9 +128,9 @@ class Robot:
         if spec == "mannequin":
             from .models.mannequin import MANNEQUIN_LIMIT_FILE, build_mannequin
             robot = build_mannequin()
-            robot.limit_file = str(MANNEQUIN_LIMIT_FILE)
+            robot.limit_file, robot.name = str(MANNEQUIN_LIMIT_FILE), spec
             return robot
-        if spec.endswith(".urdf") or os.path.sep in spec:
+        if is_urdf_path(spec):
             return cls.from_urdf(spec)
         return cls.from_example_robot_data(spec)
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from ..robot import Robot, RobotModelError, is_urdf_path
 from ..tasks import MAX_COORDINATE
 from ..yaml_file import load_yaml_file
 from .potential import RoughTrajectory
@@ -180,8 +181,10 @@ class _SceneParser:
                               ("potential_slope", "locked_joints"))
         name = self.string(fields["name"], "name")
         robot_spec = self.string(fields["robot"], "robot")
+        given = getattr(self.robot, "name", None)
+        if given is not None and given != robot_spec and not is_urdf_path(robot_spec):
+            self.fail("robot", f"the scene is for {robot_spec!r}, the robot given is {given!r}")
         if self.robot is None:
-            from ..robot import Robot, RobotModelError
             try:
                 self.robot = Robot.load(robot_spec)
             except RobotModelError as error:
