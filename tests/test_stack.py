@@ -123,6 +123,12 @@ def test_yaml_stack_parses_to_specs():
     assert specs == [HAND, COM_XY]
 
 
+def test_exponents_without_a_dot_are_numbers():
+    """YAML 1.1 (PyYAML) read 5e-1 as a string, refused as a gain of the wrong type."""
+    spec, = parse_stack_yaml("- {name: com, kind: com, gain: 5e-1, weight: 2E0}")
+    assert (spec.gain, spec.weight) == (0.5, 2.0)
+
+
 # set_stack is atomic: a failure keeps the previous stack and its targets.
 
 @pytest.fixture

@@ -40,6 +40,8 @@ START = Target(np.array([0.11, -0.43, 0.78]), Rotation.from_euler("xyz", [0.3, -
      "waypoint 1.rpy: must be a list of 3"),
     ("[{offset: [0, 0, 0], duration: 0}]", "waypoint 0.duration: must be a number > 0"),
     ("[{offset: [0, 0, 0], duration: '1'}]", "waypoint 0.duration: must be a number > 0"),
+    ("[{offset: [0, 0, 0], duration: 1.0e+7}]", "waypoint 0.duration: must be a number > 0 "
+                                                "(s), at most 1e+06"),
     ("[{offset: [0, 0, 0], duration: 1, speed: 2}]", "waypoint 0: unknown field 'speed'"),
 ])
 def test_malformed_path_is_rejected_naming_the_field(text, field):
@@ -58,6 +60,19 @@ def test_path_files_and_builtin_names(tmp_path):
         load_path(str(tmp_path / "missing.yaml"))
     with pytest.raises(PathError, match="built-in: circle, reach_limits"):
         load_path("figure_eight")
+
+
+def test_exponents_without_a_dot_are_numbers_within_bounds(tmp_path):
+    """YAML 1.1 (PyYAML) read 1e308 and 5e-2 as strings; they are numbers, and a number
+    beyond 1e6 is refused."""
+    path = tmp_path / "exponents.yaml"
+    path.write_text("- {offset: [5e-2, 0, 0], duration: 2e0}\n")
+    waypoint, = load_path(str(path))
+    assert waypoint.offset[0] == 0.05 and waypoint.duration == 2.0
+    path.write_text("- {offset: [1e308, 0, 0], duration: 1}\n")
+    with pytest.raises(PathError, match=r"offset: .* at most 1e\+06 in magnitude, got "
+                                        r"\[1e\+308, 0, 0\]"):
+        load_path(str(path))
 
 
 def test_unreadable_or_stalled_paths_are_path_errors(tmp_path):

@@ -20,6 +20,7 @@ from stance.planning.contacts import Contact
 from stance.planning.planner import PlanRequest
 from stance.planning.scene import Goal, SceneError, load_scene, parse_scene
 from stance.tasks import TargetError
+from stance.yaml_file import load_yaml
 from stance_msgs.msg import Contact as ContactMsg
 from stance_msgs.msg import ContactStance, StancePlan
 from std_msgs.msg import Header
@@ -48,7 +49,7 @@ def scene_from_goal(goal, default_scene: str, robot_spec: str, robot):
     try:
         if goal.scene_yaml:
             try:
-                document = yaml.safe_load(goal.scene_yaml)
+                document = load_yaml(goal.scene_yaml)
             except yaml.YAMLError as error:
                 raise SceneError(f"not valid YAML: {error}") from None
             scene = parse_scene(document, "<goal>", robot)

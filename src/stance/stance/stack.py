@@ -13,6 +13,8 @@ from dataclasses import dataclass, field, replace
 
 import yaml
 
+from .yaml_file import load_yaml
+
 KINDS = ("pose", "position", "orientation", "com", "posture", "support")
 FRAME_KINDS = ("pose", "position", "orientation")
 AXES = ("x", "y", "z", "rx", "ry", "rz")
@@ -132,7 +134,7 @@ def spec_from_dict(entry: dict) -> TaskSpec:
 def parse_stack_yaml(text: str, frame_exists=None) -> list:
     """Parse a stack written as YAML: either a list of tasks or a mapping with key `tasks`."""
     try:
-        document = yaml.safe_load(text)
+        document = load_yaml(text)
     except yaml.YAMLError as error:
         raise StackError(f"stack is not valid YAML: {error}") from error
     if isinstance(document, dict) and "tasks" in document:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
+from stance.yaml_file import load_yaml
 
 from .cli import positive
 from .param import is_parameter_value
@@ -63,7 +64,7 @@ def load_graph(path: Path) -> list[NodeSpec]:
     """Parse and check a graph file (nothing is looked up in the install yet)."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = load_yaml(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError as error:
         raise GraphError(f"{path}: not a YAML text file (not UTF-8: byte {error.start})") \
             from error

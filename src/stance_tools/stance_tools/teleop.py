@@ -43,6 +43,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from scipy.spatial.transform import Rotation, Slerp
 from stance.stack import MAX_NAME_LENGTH, NAME_PATTERN
+from stance.tasks import MAX_COORDINATE
+from stance.yaml_file import load_yaml
 from stance_msgs.msg import SolverStatus
 
 from .cli import positive
@@ -95,14 +97,16 @@ WAYPOINT_FIELDS = ("offset", "rpy", "duration")
 
 
 def _is_number(value) -> bool:
-    """A finite int or float; YAML booleans are not numbers here."""
+    """An int or float of magnitude at most MAX_COORDINATE (1e6: m, rad or s); YAML
+    booleans are not numbers here."""
     return (isinstance(value, (int, float)) and not isinstance(value, bool)
-            and math.isfinite(value))
+            and abs(value) <= MAX_COORDINATE)
 
 
 def _vector3(value, where: str, unit: str) -> np.ndarray:
     if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(map(_is_number, value)):
-        raise PathError(f"{where}: must be a list of 3 finite numbers ({unit}), got {value!r}")
+        raise PathError(f"{where}: must be a list of 3 finite numbers ({unit}), each at most "
+                        f"{MAX_COORDINATE:g} in magnitude, got {value!r}")
     return np.array(value, dtype=float)
 
 
@@ -125,7 +129,8 @@ def parse_path(data, source: str = "path") -> list:
                 raise PathError(f"{where}: missing field {required!r}")
         duration = entry["duration"]
         if not _is_number(duration) or duration <= 0:
-            raise PathError(f"{where}.duration: must be a number > 0 (s), got {duration!r}")
+            raise PathError(f"{where}.duration: must be a number > 0 (s), at most "
+                            f"{MAX_COORDINATE:g}, got {duration!r}")
         offset = _vector3(entry["offset"], f"{where}.offset", "m")
         rpy = _vector3(entry.get("rpy", [0.0, 0.0, 0.0]), f"{where}.rpy", "rad")
         waypoints.append(Waypoint(offset, Rotation.from_euler("xyz", rpy), float(duration)))
@@ -158,7 +163,7 @@ def load_path(spec: str) -> list:
         source = f"{spec}.yaml"
         text = (resources.files(__package__) / PATHS_PACKAGE_DIR / source).read_text()
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as error:
         raise PathError(f"{source}: invalid YAML: {error}") from None
     return parse_path(data, source)
