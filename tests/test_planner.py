@@ -173,8 +173,45 @@ def test_stance_plan_reports_a_bad_budget(capsys):
     assert "stance plan: max_nodes must be an integer >= 1, got 0" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("goal, message", [
+    (Goal("base_link", "x", 5.0), "base_link x > 5 m, and no stance takes it past 3.10 m"),
+    (Goal("base_link", "z", -3.0, -1), "base_link z < -3 m, and no stance takes it past "
+                                       "-1.10 m"),
+])
+def test_a_goal_no_stance_can_reach_is_no_path_at_once(robot, scene, goal, message):
+    """The floor ends at x = 2 m and a sole lies at most 1.10 m from base_link (its leg's
+    offsets): the search used to run until its budget was spent (15 min by default)."""
+    result = plan_contacts(robot, PlanRequest(scene=scene, goal=goal))
+    assert result.reason == planner.NO_PATH
+    assert result.message == f"goal out of reach: {message} (the scene's surfaces, then " \
+                             "the longest chain from a spot to base_link)"
+    assert result.statistics == {}      # no posture generated
+
+
+def test_no_configuration_takes_two_frames_farther_apart_than_their_chain(robot):
+    """_chain_length bounds the distance between two frames over random configurations."""
+    import pinocchio as pin
+
+    rng = np.random.default_rng(5)
+    model, data = robot.model, robot.model.createData()
+    pairs = [("left_sole_link", "base_link"), ("gripper_right_base_link", "left_sole_link"),
+             ("head_2_link", "right_sole_link")]
+    bounds = [planner._chain_length(model, *pair) for pair in pairs]
+    farthest = np.zeros(len(pairs))
+    for _ in range(2000):
+        q = robot.initial_configuration()
+        q[robot.limited_q_index] = rng.uniform(robot.lower, robot.upper)
+        pin.framesForwardKinematics(model, data, q)
+        for index, (first, second) in enumerate(pairs):
+            distance = np.linalg.norm(data.oMf[model.getFrameId(first)].translation -
+                                      data.oMf[model.getFrameId(second)].translation)
+            farthest[index] = max(farthest[index], distance)
+    assert np.all(farthest <= bounds)
+    assert np.all(farthest > 0.9 * np.array(bounds))   # a tight bound, not a wild guess
+
+
 def test_a_goal_off_the_floor_ends_with_the_budget(robot, scene):
-    far = Goal("base_link", "x", 5.0)     # the floor ends at x = 2 m
+    far = Goal("base_link", "x", 2.5)     # the floor ends at x = 2 m
     began = time.monotonic()
     result = plan_contacts(robot, PlanRequest(scene=scene, goal=far, max_nodes=25))
     assert result.reason in (planner.BUDGET_EXHAUSTED, planner.NO_PATH)
@@ -183,7 +220,7 @@ def test_a_goal_off_the_floor_ends_with_the_budget(robot, scene):
 
 
 def test_time_budget_ends_the_search(robot, scene):
-    result = plan_contacts(robot, PlanRequest(scene=scene, goal=Goal("base_link", "x", 5.0),
+    result = plan_contacts(robot, PlanRequest(scene=scene, goal=Goal("base_link", "x", 2.5),
                                               time_budget=0.5))
     assert result.reason == planner.BUDGET_EXHAUSTED
     assert result.statistics["planning_time"] < 5.0

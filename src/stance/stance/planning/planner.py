@@ -47,6 +47,9 @@ NO_PATH = "no_path"                     # the search tree is exhausted
 BUDGET_EXHAUSTED = "budget_exhausted"   # max_nodes or time_budget reached
 BAD_GOAL = "bad_goal"                   # goal condition malformed or names unknown frames
 CANCELLED = "cancelled"                 # should_stop() returned True
+# Pinocchio joint kinds that only turn their child frame (revolute about any axis,
+# unbounded revolute, spherical)
+TURNING_JOINTS = ("JointModelR", "JointModelSpherical")
 
 
 @dataclass
@@ -383,6 +386,44 @@ def _check_goal(robot, goal):
     return ""
 
 
+def _goal_out_of_reach(robot, scene, goal) -> str:
+    """A failure message when no stance can meet the goal, or '': every stance has a
+    contact, whose spot lies on one of the surfaces it may touch, and the goal frame lies
+    at most its chain's length (_chain_length) from that spot."""
+    axis, farthest = "xyz".index(goal.axis), -math.inf
+    for spot in scene.spots.values():
+        reach = _chain_length(robot.model, spot.frame, goal.frame) + \
+            float(np.linalg.norm(spot.placement.translation))
+        for name in spot.surfaces or tuple(scene.surfaces):
+            surface = scene.surfaces[name]
+            for x, y in surface.polygon:
+                corner = surface.pose.act(np.array([x, y, 0.0]))
+                farthest = max(farthest, goal.sense * corner[axis] + reach)
+    if farthest > goal.sense * goal.threshold:
+        return ""
+    return (f"goal out of reach: {goal.frame} {goal.axis} {'>' if goal.sense > 0 else '<'} "
+            f"{goal.threshold:g} m, and no stance takes it past {goal.sense * farthest:.2f} m "
+            f"(the scene's surfaces, then the longest chain from a spot to {goal.frame})")
+
+
+def _chain_length(model, first: str, second: str) -> float:
+    """Upper bound (m) on the distance between two frames' origins in any configuration:
+    the offsets along the kinematic tree between them, the joints turning only (inf if a
+    joint between them translates: the free flyer, a prismatic joint)."""
+    frames = [model.frames[model.getFrameId(name)] for name in (first, second)]
+    chains = [list(model.supports[frame.parentJoint]) for frame in frames]  # root first
+    common = 0
+    while common < min(map(len, chains)) and chains[0][common] == chains[1][common]:
+        common += 1
+    length = sum(float(np.linalg.norm(frame.placement.translation)) for frame in frames)
+    for chain in chains:
+        for joint in chain[common:]:
+            if not model.joints[joint].shortname().startswith(TURNING_JOINTS):
+                return math.inf
+            length += float(np.linalg.norm(model.jointPlacements[joint].translation))
+    return length
+
+
 def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
                   collision=None, settings=None) -> PlanOutcome:
     """Plan stances from the request's start to its goal (module docstring).
@@ -404,6 +445,9 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
     message = _check_goal(robot, goal)
     if message:
         return PlanOutcome(BAD_GOAL, message)
+    message = _goal_out_of_reach(robot, scene, goal)
+    if message:
+        return PlanOutcome(NO_PATH, message)
     key_postures = scene.key_postures if request.key_postures is None else request.key_postures
     start = tuple(Contact(c.spot, c.surface, c.x, c.y, c.theta)
                   for c in (scene.start if request.start is None else request.start))
