@@ -188,6 +188,13 @@ def test_a_goal_no_stance_can_reach_is_no_path_at_once(robot, scene, goal, messa
     assert result.statistics == {}      # no posture generated
 
 
+def test_a_start_off_the_scene_is_named_before_a_goal_out_of_reach(robot, scene):
+    start = (Contact("left_sole", "floor", 5.0, 0.1, 0.0),)
+    result = plan_contacts(robot, PlanRequest(scene=scene, start=start,
+                                              goal=Goal("base_link", "x", 5.0)))
+    assert result.reason == planner.INFEASIBLE_START
+
+
 def test_no_configuration_takes_two_frames_farther_apart_than_their_chain(robot):
     """_chain_length bounds the distance between two frames over random configurations."""
     import pinocchio as pin

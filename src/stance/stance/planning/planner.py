@@ -43,13 +43,18 @@ from .volumes import initial_volume
 # Failure reasons, as reported by the planner, the action result and the CLI.
 SUCCESS = "success"
 INFEASIBLE_START = "infeasible_start"   # no posture realises the start stance
-NO_PATH = "no_path"                     # the search tree is exhausted
+NO_PATH = "no_path"                     # the search tree is exhausted, or no stance
+#                                         can meet the goal (_goal_out_of_reach)
 BUDGET_EXHAUSTED = "budget_exhausted"   # max_nodes or time_budget reached
 BAD_GOAL = "bad_goal"                   # goal condition malformed or names unknown frames
 CANCELLED = "cancelled"                 # should_stop() returned True
-# Pinocchio joint kinds that only turn their child frame (revolute about any axis,
-# unbounded revolute, spherical)
-TURNING_JOINTS = ("JointModelR", "JointModelSpherical")
+# Pinocchio joint kinds that only turn their child frame: revolute about any axis, bounded
+# or not, spherical
+TURNING_JOINTS = frozenset(
+    f"JointModel{kind}" for kind in ("RX", "RY", "RZ", "RUBX", "RUBY", "RUBZ",
+                                     "RevoluteUnaligned", "RevoluteUnboundedUnaligned",
+                                     "Spherical", "SphericalZYX"))
+REACH_MARGIN = 0.01   # m: contacts are met within tolerances, a start's within 1 mm slack
 
 
 @dataclass
@@ -389,7 +394,7 @@ def _check_goal(robot, goal):
 def _goal_out_of_reach(robot, scene, goal) -> str:
     """A failure message when no stance can meet the goal, or '': every stance has a
     contact, whose spot lies on one of the surfaces it may touch, and the goal frame lies
-    at most its chain's length (_chain_length) from that spot."""
+    at most its chain's length (_chain_length) from that spot (REACH_MARGIN more)."""
     axis, farthest = "xyz".index(goal.axis), -math.inf
     for spot in scene.spots.values():
         reach = _chain_length(robot.model, spot.frame, goal.frame) + \
@@ -399,7 +404,7 @@ def _goal_out_of_reach(robot, scene, goal) -> str:
             for x, y in surface.polygon:
                 corner = surface.pose.act(np.array([x, y, 0.0]))
                 farthest = max(farthest, goal.sense * corner[axis] + reach)
-    if farthest > goal.sense * goal.threshold:
+    if farthest + REACH_MARGIN > goal.sense * goal.threshold:
         return ""
     return (f"goal out of reach: {goal.frame} {goal.axis} {'>' if goal.sense > 0 else '<'} "
             f"{goal.threshold:g} m, and no stance takes it past {goal.sense * farthest:.2f} m "
@@ -418,7 +423,7 @@ def _chain_length(model, first: str, second: str) -> float:
     length = sum(float(np.linalg.norm(frame.placement.translation)) for frame in frames)
     for chain in chains:
         for joint in chain[common:]:
-            if not model.joints[joint].shortname().startswith(TURNING_JOINTS):
+            if model.joints[joint].shortname() not in TURNING_JOINTS:
                 return math.inf
             length += float(np.linalg.norm(model.jointPlacements[joint].translation))
     return length
@@ -445,9 +450,6 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
     message = _check_goal(robot, goal)
     if message:
         return PlanOutcome(BAD_GOAL, message)
-    message = _goal_out_of_reach(robot, scene, goal)
-    if message:
-        return PlanOutcome(NO_PATH, message)
     key_postures = scene.key_postures if request.key_postures is None else request.key_postures
     start = tuple(Contact(c.spot, c.surface, c.x, c.y, c.theta)
                   for c in (scene.start if request.start is None else request.start))
@@ -455,6 +457,9 @@ def plan_contacts(robot, request: PlanRequest, progress=None, should_stop=None,
         problem = placement_problem(scene.surfaces, scene.spots, contact)
         if problem:
             return PlanOutcome(INFEASIBLE_START, f"start[{index}]{problem[0]}: {problem[1]}")
+    message = _goal_out_of_reach(robot, scene, goal)
+    if message:
+        return PlanOutcome(NO_PATH, message)
     if collision is None:
         collision = CollisionModel(robot, scene)
     settings = settings or PostureSettings(time_budget=math.inf)
