@@ -139,6 +139,24 @@ def test_malformed_graph_names_the_field(tmp_path, text, message):
         load_graph(write_graph(tmp_path, text))
 
 
+def test_unreadable_graph_files_are_named(tmp_path):
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe")
+    with pytest.raises(GraphError, match=r"binary.yaml: not a YAML text file \(not UTF-8"):
+        load_graph(binary)
+    with pytest.raises(GraphError, match=r"broken.yaml: not valid YAML"):
+        load_graph(write_graph(tmp_path, "nodes: [\n").rename(tmp_path / "broken.yaml"))
+    with pytest.raises(GraphError, match=r"No such file"):
+        load_graph(tmp_path / "missing.yaml")
+
+
+def test_a_parameter_written_with_an_exponent_is_a_number(tmp_path):
+    """YAML 1.1 read 2e-3 as a string; pik_node's double parameter would refuse it."""
+    [spec] = load_graph(write_graph(
+        tmp_path, "nodes:\n  - {name: a, executable: pik_node, parameters: {damping: 2e-3}}\n"))
+    assert spec.parameters == {"damping": 0.002}
+
+
 @pytest.mark.parametrize("node, message", [
     ("{name: a, executable: no_such_node}", "nodes[0] (a).executable: no installed package"),
     ("{name: a, package: no_such_package, executable: pik_node}",

@@ -34,7 +34,8 @@ class Robot:
         limit_file: YAML of swing and ball-and-socket joint limits shipped with the model
             (stance.swing.load_limit_file), or None.
         name: the robot's name where it has one (an example-robot-data name or
-            `mannequin`, as Robot.load takes them), None for a URDF file.
+            `mannequin`, as Robot.load takes them), None for a URDF file or a model
+            built otherwise.
     """
 
     model: pin.Model

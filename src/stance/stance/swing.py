@@ -929,9 +929,10 @@ class JointGroupLimit(SwingTwistRule):
     def keep_inside(self, q, q_next) -> None:
         """Project q_next's group rotation, then its joints (in place), into the limits
         without moving either further out than q (alternately, a few rounds: the bounds
-        have the last word). A joint beyond its own bound keeps the way back q_next gives
-        it, even where the swing then grows: a group turned past a half turn (a hip pitch
-        far past its bound) can only come back through the bone pointing straight up."""
+        have the last word), except that a joint beyond its own bound keeps the way back
+        q_next gives it even where the swing then grows: a group turned past a half turn
+        (a hip pitch far past its bound) can only come back through the bone pointing
+        straight up."""
         _group_keep_inside(self.kernel_arguments, q, q_next)
 
 

@@ -1,5 +1,6 @@
 """Reading the project's YAML documents (scenes, limit files, stacks, teleop paths, graph
-files) with YAML 1.2 numbers, and errors that name the file."""
+files): PyYAML's YAML 1.1 rules plus exponents without a dot read as floats, and errors
+that name the file."""
 
 from __future__ import annotations
 
@@ -10,8 +11,9 @@ import yaml
 
 
 class _Loader(yaml.SafeLoader):
-    """yaml.SafeLoader that also reads exponents without a dot as floats (YAML 1.2):
-    PyYAML's YAML 1.1 rules read `1e-3` and `1e308` as strings."""
+    """yaml.SafeLoader that also reads exponents without a dot as floats, as YAML 1.2
+    does: PyYAML's YAML 1.1 rules read `1e-3` and `1e308` as strings. The rest stays
+    YAML 1.1 (`017` is octal, `yes` a bool)."""
 
 
 _Loader.add_implicit_resolver(

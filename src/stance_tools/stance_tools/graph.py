@@ -24,8 +24,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-from stance.yaml_file import load_yaml
+from stance.yaml_file import load_yaml_file
 
 from .cli import positive
 from .param import is_parameter_value
@@ -64,11 +63,8 @@ def load_graph(path: Path) -> list[NodeSpec]:
     """Parse and check a graph file (nothing is looked up in the install yet)."""
     path = Path(path)
     try:
-        data = load_yaml(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as error:
-        raise GraphError(f"{path}: not a YAML text file (not UTF-8: byte {error.start})") \
-            from error
-    except (OSError, yaml.YAMLError) as error:
+        data = load_yaml_file(path, GraphError)
+    except OSError as error:
         raise GraphError(str(error)) from error
     if not isinstance(data, dict) or "nodes" not in data:
         raise GraphError("nodes: missing (the file must be a mapping with a 'nodes' list)")
