@@ -56,10 +56,13 @@ def test_bench_levels_compares_each_level_count_with_one_less(tmp_path):
                    "--json", str(output)]) == 0
     result = json.loads(output.read_text())
     talos, same_states = result["talos"], result["talos_same_states"]
+    unlimited = result["talos_same_states_no_limits"]
     assert set(talos) == {f"{label} {count} levels" for label in ("svd", "qp")
                           for count in (1, 2, 3, 4)}
     assert set(same_states) == {f"svd {count} levels" for count in (1, 2, 3, 4)}
-    for figures in (talos, same_states):
+    assert set(unlimited) == {"svd-none 3 levels", "svd-none 4 levels"}
+    assert unlimited["svd-none 4 levels"]["mean_clamping_iterations"] == 1.0
+    for figures in (talos, same_states, unlimited):
         for name, entry in figures.items():
             label, count = name.split()[:2]
             previous = figures.get(f"{label} {int(count) - 1} levels")

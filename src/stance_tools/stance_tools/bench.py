@@ -469,17 +469,20 @@ def add_levels_arguments(parser) -> None:
     parser.add_argument("--json", help="also write the figures to this JSON file")
 
 
-def level_contenders(robot, stack_yaml, start, offsets, dt, level_counts) -> list:
-    """Progressive-clamping contenders "<hierarchy> <n> levels" on the stack's first n
-    priority levels, for each hierarchy and n in level_counts."""
+def level_contenders(robot, stack_yaml, start, offsets, dt, level_counts,
+                     strategy="progressive", hierarchies=HIERARCHIES) -> list:
+    """Contenders "<hierarchy> <n> levels" on the stack's first n priority levels, for
+    each hierarchy and n in level_counts, with a limit strategy (progressive clamping; any
+    other is named "<hierarchy>-<strategy> <n> levels")."""
     from stance.stack import parse_stack_yaml
 
     specs = parse_stack_yaml(stack_yaml)
     targets = bench_targets(robot, specs, start, offsets)
-    return [StanceContender(robot, "progressive", [spec for spec in specs
-                                                   if spec.priority < count],
-                            targets, start, dt, qp=qp, name=f"{label} {count} levels")
-            for count in level_counts for label, qp in HIERARCHIES.items()]
+    suffix = "" if strategy == "progressive" else f"-{strategy}"
+    return [StanceContender(robot, strategy, [spec for spec in specs
+                                              if spec.priority < count],
+                            targets, start, dt, qp=qp, name=f"{label}{suffix} {count} levels")
+            for count in level_counts for label, qp in hierarchies.items()]
 
 
 def level_figures(records, contenders, steps) -> dict:
@@ -560,6 +563,14 @@ def run_levels(args) -> int:
         states = visited(svd[-1], talos_start, args.steps)
         results["talos_same_states"] = level_figures(
             race(svd, talos, talos_start, args.steps, states=states), svd, args.steps)
+        # the same configurations with no limit strategy: the levels' own cost, without the
+        # clamping loop's re-evaluations (paper IV.C)
+        unlimited = level_contenders(talos, TALOS_LEVEL_STACK, talos_start, hand_offsets,
+                                     args.dt, (3, 4), strategy="none",
+                                     hierarchies={"svd": False})
+        results["talos_same_states_no_limits"] = level_figures(
+            race(unlimited, talos, talos_start, args.steps, states=states), unlimited,
+            args.steps)
 
     print(f"stance bench levels: progressive clamping, dt {args.dt} s (velocity bounds), "
           f"{args.steps} timed steps after {args.warmup} warm-up, one BLAS thread; svd = "
@@ -569,6 +580,9 @@ def run_levels(args) -> int:
     print_level_table("Talos, each level count stepping from the configurations of the svd "
                       "4-level run (open loop): what a level costs on the same inputs",
                       results["talos_same_states"])
+    print_level_table("Talos, the same configurations with no limit strategy: each level's "
+                      "own cost, without the clamping loop's re-evaluations (paper IV.C)",
+                      results["talos_same_states_no_limits"])
     print_level_table(f"Panda (nv {panda.model.nv}, fixed base): hand pose > posture, hand "
                       f"moved (0.2, 0.2, -0.2) m", results["panda"])
     print("x previous: median over the same hierarchy's median with one level less; iters: "
