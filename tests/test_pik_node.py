@@ -553,16 +553,31 @@ def test_stack_file_on_a_fixed_frame_is_refused_at_start(tmp_path):
 
 
 def test_bad_runtime_strategy_is_refused_and_the_old_one_kept(pik):
+    """Alone, or in an atomic set after a good one: that one used to reach the solver while
+    the parameter kept its old value."""
     node, probe = pik
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-    from rcl_interfaces.srv import SetParameters
+    from rcl_interfaces.srv import SetParameters, SetParametersAtomically
+
+    def strategy(value):
+        return Parameter(name="strategy", value=ParameterValue(
+            type=ParameterType.PARAMETER_STRING, string_value=value))
+
     client = probe.node.create_client(SetParameters, "/pik_node/set_parameters")
-    request = SetParameters.Request(parameters=[Parameter(
-        name="strategy", value=ParameterValue(type=ParameterType.PARAMETER_STRING,
-                                              string_value="bogus"))])
-    result = probe.call(client, request).results[0]
+    result = probe.call(client, SetParameters.Request(parameters=[strategy("bogus")]))
+    assert not result.results[0].successful
+    assert "strategy must be one of" in result.results[0].reason
+    atomic = probe.node.create_client(SetParametersAtomically,
+                                      "/pik_node/set_parameters_atomically")
+    before = fresh_status(probe).rejected_inputs
+    result = probe.call(atomic, SetParametersAtomically.Request(
+        parameters=[strategy("clamping"), strategy("bogus")])).result
     assert not result.successful and "strategy must be one of" in result.reason
-    assert fresh_status(probe).strategy == "progressive"
+    status = fresh_status(probe)
+    assert status.strategy == "progressive"
+    assert status.rejected_inputs == before + 1
+    assert status.last_rejection == "parameter strategy = 'bogus' refused: strategy must be " \
+        "one of none, gpm, clamping, progressive"
     assert_alive(node, probe)
 
 
@@ -579,6 +594,12 @@ def local_pik_node():
             node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture
+def pik_node_in_process():
+    with local_pik_node() as node:
+        yield node
 
 
 def test_a_non_finite_step_is_discarded_and_reported():
@@ -636,6 +657,55 @@ def test_a_configuration_with_non_finite_kinematics_is_refused(monkeypatch):
         for name, target in targets.items():
             after = node.solver.task_poses(name)[0]
             assert (after is None and target is None) or after.isApprox(target, 0.0), name
+
+
+def test_a_megabyte_name_comes_back_cut(pik_node_in_process):
+    """A sender's 1 MB task name or frame id used to come back whole in the response and
+    in every status at 500 Hz (the loop fell to 85 Hz)."""
+    from geometry_msgs.msg import PoseStamped
+    from stance_msgs.srv import SetTaskEnabled
+    node = pik_node_in_process
+    huge = "a" * 1_000_000
+    response = node._on_set_enabled(SetTaskEnabled.Request(name=huge, enabled=False),
+                                    SetTaskEnabled.Response())
+    assert not response.success
+    assert response.message == f"no task named '{'a' * 63}... (1000000 characters) in the stack"
+    target = PoseStamped()
+    target.header.frame_id = huge
+    target.pose.orientation.w = 1.0
+    node._apply_target("right_hand", target)
+    assert node.last_rejection.startswith("target of task 'right_hand' rejected: unknown "
+                                          "frame 'aaa")
+    assert len(node.last_rejection) < 200
+    node._reject("x" * 10_000)
+    assert len(node.last_rejection) < 600 and node.last_rejection.endswith("(10000 characters)")
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("sec", -5, "header.stamp: -5 s, before the epoch"),
+    ("nanosec", 4_000_000_000, "header.stamp: nanosec 4000000000 is a second or more"),
+])
+def test_a_target_with_a_malformed_stamp_is_refused(pik_node_in_process, field, value,
+                                                    message):
+    """Its stamp went unchecked into /pik/status.last_input_stamp."""
+    from geometry_msgs.msg import PoseStamped
+    node = pik_node_in_process
+    target = PoseStamped()
+    target.header.frame_id = "world"
+    target.pose.orientation.w = 1.0
+    setattr(target.header.stamp, field, value)
+    before = node.solver.task_poses("right_hand")[0]
+    node._apply_target("right_hand", target)
+    assert node.last_rejection == f"target of task 'right_hand' rejected: {message}"
+    assert node.solver.task_poses("right_hand")[0].isApprox(before, 0.0)
+
+
+def test_an_empty_posture_target_is_refused(pik_node_in_process):
+    from sensor_msgs.msg import JointState
+    node = pik_node_in_process
+    node._apply_target("posture", JointState())
+    assert node.last_rejection == "target of task 'posture' rejected: the JointState names " \
+        "no joint"
 
 
 def test_stance_param_changes_the_strategy_at_run_time(pik):

@@ -57,9 +57,24 @@ def test_out_of_range_priority_is_rejected(priority):
     rejects_spec("priority", priority=priority)
 
 
-@pytest.mark.parametrize("weight", [math.nan, math.inf, -math.inf, 0.0, -1.0, "1"])
-def test_non_finite_or_non_positive_weight_is_rejected(weight):
-    rejects_spec("weight", weight=weight)
+@pytest.mark.parametrize("weight", [math.nan, math.inf, -math.inf, 0.0, -1.0, "1", 1e40,
+                                    1e-30, 2e6, 5e-7])
+def test_a_weight_outside_1e_6_to_1e6_is_rejected(weight):
+    """1e40 on one foot let the other, on the same priority-0 level, slide 0.28 m while the
+    level reported `met`; 1e-30 left a task 0.32 m off."""
+    rejects_spec(r"weight must be a number in \[1e-06, 1e\+06\]", weight=weight)
+
+
+@pytest.mark.parametrize("weight", [1e-6, 1e6])
+def test_the_weight_bounds_are_accepted(weight):
+    validate_stack([replace(HAND, weight=weight)])
+
+
+def test_a_stack_of_more_than_64_tasks_is_rejected():
+    """1000 one-axis CoM tasks took pik_node from 500 Hz to 40 Hz without a word."""
+    tasks = [TaskSpec(f"com{index}", "com", axes=("x",)) for index in range(65)]
+    validate_stack(tasks[:64])
+    rejects(tasks, "the stack has 65 tasks, more than 64")
 
 
 @pytest.mark.parametrize("gain", [0.0, -0.1, 1.5, math.nan, math.inf])

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from geometry_msgs.msg import Point, Polygon, Pose
 from rclpy.time import Time
-from stance.stack import AXES, FRAME_KINDS, KINDS, StackError, TaskSpec
+from stance.stack import AXES, FRAME_KINDS, KINDS, StackError, TaskSpec, short_repr
 from stance.tasks import (MAX_COORDINATE, TargetError, pose_from_position_quaternion,
                           require_finite)
 from stance_msgs.msg import TaskSpec as TaskSpecMsg
@@ -35,10 +35,11 @@ assert set(KIND_CODES.values()) == set(KINDS)
 def spec_from_msg(msg: TaskSpecMsg) -> TaskSpec:
     """Library TaskSpec from a stance_msgs/TaskSpec (validated later with the stack)."""
     if msg.kind not in KIND_CODES:
-        raise StackError(f"task {msg.name!r}: unknown kind code {msg.kind} "
+        raise StackError(f"task {short_repr(msg.name)}: unknown kind code {msg.kind} "
                          f"(expected {sorted(KIND_CODES)})")
     if msg.axis_mask & ~0b111111:
-        raise StackError(f"task {msg.name!r}: axis_mask {msg.axis_mask} has unknown bits")
+        raise StackError(f"task {short_repr(msg.name)}: axis_mask {msg.axis_mask} has unknown "
+                         "bits")
     axes = tuple(axis for axis, bit in AXIS_BITS.items() if msg.axis_mask & bit)
     return TaskSpec(name=msg.name, kind=KIND_CODES[msg.kind], frame=msg.frame,
                     priority=msg.priority, weight=msg.weight, axes=axes, gain=msg.gain,
@@ -55,7 +56,8 @@ def msg_from_spec(spec: TaskSpec) -> TaskSpecMsg:
 
 def check_world_frame(frame_id: str) -> None:
     if frame_id not in WORLD_FRAMES:
-        raise TargetError(f"unknown frame {frame_id!r}: targets are expressed in 'world'")
+        raise TargetError(f"unknown frame {short_repr(frame_id)}: targets are expressed in "
+                          "'world'")
 
 
 def se3_from_pose_msg(pose: Pose) -> pin.SE3:
@@ -133,7 +135,7 @@ def check_task_frames(robot, specs) -> None:
                 or not model.existFrame(spec.frame):
             continue
         frame = model.frames[model.getFrameId(spec.frame)]
-        where = f"task {spec.name!r}: frame {spec.frame!r}"
+        where = f"task {short_repr(spec.name)}: frame {spec.frame!r}"
         if frame.parentJoint == 0:
             raise StackError(f"{where} is fixed in the world (no joint moves it): "
                              f"a {spec.kind} task on it could never act")
@@ -166,7 +168,7 @@ def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positio
         joint = robot.model.joints[robot.model.getJointId(name)] \
             if name in robot.actuated_joint_names else None
         if joint is None or joint.nq != 1:
-            raise TargetError(f"joints: unknown actuated 1-DoF joint {name!r}")
+            raise TargetError(f"joints: unknown actuated 1-DoF joint {short_repr(name)}")
         new_q[joint.idx_q] = joints[name]
     try:
         check_within_limits(robot, joints, tolerance)
@@ -177,7 +179,10 @@ def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positio
 
 def time_from_msg(stamp, field: str) -> Time:
     """rclpy Time of a builtin_interfaces/Time; TargetError naming the field for a time
-    before the epoch, which rclpy refuses with a bare ValueError."""
+    before the epoch, which rclpy refuses with a bare ValueError, or nanoseconds past a
+    second (a stamp not normalised)."""
     if stamp.sec < 0:
         raise TargetError(f"{field}: {stamp.sec} s, before the epoch")
+    if stamp.nanosec >= 1_000_000_000:
+        raise TargetError(f"{field}: nanosec {stamp.nanosec} is a second or more")
     return Time.from_msg(stamp)

@@ -53,7 +53,7 @@ from sensor_msgs.msg import JointState
 from stance import PIKSolver, Robot, RobotModelError, StackError, TargetError
 from stance.limits import STRATEGIES
 from stance.pik import HIERARCHIES, LM_DAMPING, demo_stack_file
-from stance.stack import parse_stack_yaml
+from stance.stack import parse_stack_yaml, short_repr
 from stance.swing import LimitFileError, limit_file_path, load_limit_file
 from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
@@ -61,7 +61,8 @@ from std_msgs.msg import Header, String
 
 from .conversions import (check_task_frames, check_within_limits, check_world_frame,
                           configuration_from_msg, joint_targets_from_msg, point_from_msg,
-                          polygon_from_msg, se3_from_pose_msg, spec_from_msg)
+                          polygon_from_msg, se3_from_pose_msg, spec_from_msg,
+                          time_from_msg)
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # The per-step outputs: two seconds of history at 500 Hz. A reliable reader whose process
@@ -71,6 +72,7 @@ RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 STREAM = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+MAX_REJECTION_LENGTH = 500   # characters of /pik/status.last_rejection
 # A loop that missed more than BEHIND_FRACTION of its periods over a RATE_WINDOW s window
 # says so in the log (sporadic misses on a loaded machine only count in the status)
 RATE_WINDOW = 5.0
@@ -196,14 +198,18 @@ class PikNode(Node):
             "command); unset: none"))
 
     def _on_set_parameters(self, parameters):
-        for parameter in parameters:
-            if parameter.name == "strategy":
-                if parameter.value not in STRATEGIES:
-                    return SetParametersResult(
-                        successful=False,
-                        reason=f"strategy must be one of {', '.join(STRATEGIES)}")
-                with self._lock:
-                    self.solver.set_strategy(parameter.value)
+        """Every parameter checked before any is applied: an atomic set with one bad value
+        changes nothing."""
+        strategies = [parameter.value for parameter in parameters
+                      if parameter.name == "strategy"]
+        for strategy in strategies:
+            if strategy not in STRATEGIES:
+                reason = f"strategy must be one of {', '.join(STRATEGIES)}"
+                self._reject(f"parameter strategy = {short_repr(strategy)} refused: {reason}")
+                return SetParametersResult(successful=False, reason=reason)
+        if strategies:
+            with self._lock:
+                self.solver.set_strategy(strategies[-1])
         return SetParametersResult(successful=True)
 
     # --- inputs -------------------------------------------------------------------------
@@ -228,9 +234,12 @@ class PikNode(Node):
 
     def _apply_target(self, name, msg):
         try:
+            time_from_msg(msg.header.stamp, "header.stamp")     # reported in /pik/status
             task = self.solver.task(name)
             kind = task.spec.kind
             if kind == "posture":
+                if not msg.name:
+                    raise TargetError("the JointState names no joint")
                 joints = joint_targets_from_msg(msg.name, msg.position)
                 check_within_limits(self.robot, joints)  # as /pik/set_configuration does
                 task.set_joint_targets(self.robot, joints)
@@ -315,6 +324,10 @@ class PikNode(Node):
         return response
 
     def _reject(self, reason: str):
+        """Count, keep (for /pik/status, at most MAX_REJECTION_LENGTH characters) and log
+        a rejected input."""
+        if len(reason) > MAX_REJECTION_LENGTH:
+            reason = f"{reason[:MAX_REJECTION_LENGTH]}... ({len(reason)} characters)"
         self.rejected_inputs += 1
         self.last_rejection = reason
         self.get_logger().warning(reason)

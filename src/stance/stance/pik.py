@@ -44,7 +44,7 @@ from .limits import RevoluteLimits, fix_joints, make_strategy
 from .qp_hierarchy import (BINDING_TOLERANCE, Inequalities, QPHierarchy, cascade_compiled,
                            empty_cascade_state)
 from .robot import RobotModelError
-from .stack import StackError, TaskSpec, parse_stack_yaml, validate_stack
+from .stack import StackError, TaskSpec, parse_stack_yaml, short_repr, validate_stack
 from .swing import NO_BALL, NO_GROUP, BallLimit, JointGroupLimit, ball_fix, group_fix
 from .tasks import (ComTask, FrameTask, FrameTaskBatch, PostureTask, SupportTask,
                     capped_steps, make_task, step_cap_groups)
@@ -258,7 +258,7 @@ class PIKSolver:
 
     def task(self, name: str):
         if name not in self.tasks:
-            raise StackError(f"no task named {name!r} in the stack")
+            raise StackError(f"no task named {short_repr(name)} in the stack")
         return self.tasks[name]
 
     def set_enabled(self, name: str, enabled: bool) -> None:

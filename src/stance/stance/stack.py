@@ -27,8 +27,22 @@ KIND_AXES = {
     "support": (),
 }
 MAX_PRIORITY = 31
+# A task's rows are scaled by sqrt(weight): past 1e6 between two tasks of a level, a
+# priority-0 contact slid while its level reported `met`, and a tiny weight on a level of
+# its own stalls it against the damping
+MIN_WEIGHT, MAX_WEIGHT = 1e-6, 1e6
+MAX_TASKS = 64    # a stack's tasks: 1000 one-axis tasks took pik_node from 500 Hz to 40 Hz
 NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")   # the whole name (fullmatch)
 MAX_NAME_LENGTH = 64   # characters: a name also names topics (pik_node's task targets)
+
+
+def short_repr(value, limit: int = MAX_NAME_LENGTH) -> str:
+    """repr(value) for a message, cut after `limit` characters (its length then said): a
+    sender's megabyte of name must not come back in every status."""
+    text = repr(value)
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}... ({len(value) if isinstance(value, str) else len(text)} characters)"
 
 
 class StackError(ValueError):
@@ -60,35 +74,36 @@ class TaskSpec:
 
 def validate_spec(spec: TaskSpec, frame_exists=None) -> None:
     """Raise StackError if `spec` is malformed; `frame_exists(name)` checks robot frames."""
-    where = f"task {spec.name!r}"
+    where = f"task {short_repr(spec.name)}"
     if not isinstance(spec.name, str) or not NAME_PATTERN.fullmatch(spec.name):
-        raise StackError(f"task name {spec.name!r} must match {NAME_PATTERN.pattern}")
+        raise StackError(f"task name {short_repr(spec.name)} must match {NAME_PATTERN.pattern}")
     if len(spec.name) > MAX_NAME_LENGTH:
         raise StackError(f"task name {spec.name[:16]!r}... has {len(spec.name)} characters, "
                          f"more than {MAX_NAME_LENGTH}")
     if spec.kind not in KINDS:
-        raise StackError(f"{where}: unknown kind {spec.kind!r} "
+        raise StackError(f"{where}: unknown kind {short_repr(spec.kind)} "
                          f"(expected one of {', '.join(KINDS)})")
     if not isinstance(spec.frame, str):
-        raise StackError(f"{where}: frame must be a string (got {spec.frame!r})")
+        raise StackError(f"{where}: frame must be a string (got {short_repr(spec.frame)})")
     if spec.kind in FRAME_KINDS:
         if not spec.frame:
             raise StackError(f"{where}: kind {spec.kind} needs a frame")
         if frame_exists is not None and not frame_exists(spec.frame):
-            raise StackError(f"{where}: unknown frame {spec.frame!r}")
+            raise StackError(f"{where}: unknown frame {short_repr(spec.frame)}")
     elif spec.frame:
-        raise StackError(f"{where}: kind {spec.kind} takes no frame (got {spec.frame!r})")
+        raise StackError(f"{where}: kind {spec.kind} takes no frame (got {short_repr(spec.frame)})")
     if isinstance(spec.priority, bool) or not isinstance(spec.priority, int) \
             or not 0 <= spec.priority <= MAX_PRIORITY:
         raise StackError(f"{where}: priority {spec.priority!r} out of range 0..{MAX_PRIORITY}")
-    if not _finite_number(spec.weight) or spec.weight <= 0:
-        raise StackError(f"{where}: weight must be a finite number > 0 (got {spec.weight!r})")
+    if not _finite_number(spec.weight) or not MIN_WEIGHT <= spec.weight <= MAX_WEIGHT:
+        raise StackError(f"{where}: weight must be a number in [{MIN_WEIGHT:g}, "
+                         f"{MAX_WEIGHT:g}] (got {spec.weight!r})")
     if not _finite_number(spec.gain) or not 0 < spec.gain <= 1:
         raise StackError(f"{where}: gain must be in (0, 1] (got {spec.gain!r})")
     allowed = KIND_AXES[spec.kind]
     for axis in spec.axes:
         if axis not in allowed:
-            raise StackError(f"{where}: axis {axis!r} not valid for kind {spec.kind} "
+            raise StackError(f"{where}: axis {short_repr(axis)} not valid for kind {spec.kind} "
                              f"(allowed: {', '.join(allowed) or 'none'})")
     if len(set(spec.axes)) != len(spec.axes):
         raise StackError(f"{where}: repeated axis in {list(spec.axes)}")
@@ -101,13 +116,15 @@ def validate_stack(specs, frame_exists=None) -> list:
     specs = list(specs)
     if not specs:
         raise StackError("the stack is empty")
+    if len(specs) > MAX_TASKS:
+        raise StackError(f"the stack has {len(specs)} tasks, more than {MAX_TASKS}")
     seen = set()
     for spec in specs:
         if not isinstance(spec, TaskSpec):
             raise StackError(f"stack entries must be TaskSpec, got {type(spec).__name__}")
         validate_spec(spec, frame_exists)
         if spec.name in seen:
-            raise StackError(f"duplicate task name {spec.name!r}")
+            raise StackError(f"duplicate task name {short_repr(spec.name)}")
         seen.add(spec.name)
     return specs
 
@@ -115,11 +132,12 @@ def validate_stack(specs, frame_exists=None) -> list:
 def spec_from_dict(entry: dict) -> TaskSpec:
     """Build a TaskSpec from a YAML mapping; unknown keys are errors."""
     if not isinstance(entry, dict):
-        raise StackError(f"each task must be a mapping, got {entry!r}")
+        raise StackError(f"each task must be a mapping, got {short_repr(entry)}")
     known = {"name", "kind", "frame", "priority", "weight", "axes", "gain", "enabled"}
     unknown = set(entry) - known
     if unknown:
-        raise StackError(f"task {entry.get('name', '?')!r}: unknown keys {sorted(unknown)}")
+        raise StackError(f"task {short_repr(entry.get('name', '?'))}: unknown keys "
+                         f"{short_repr(sorted(unknown))}")
     if "name" not in entry or "kind" not in entry:
         raise StackError(f"task {entry!r} needs at least a name and a kind")
     axes = entry.get("axes", ())

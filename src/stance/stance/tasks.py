@@ -16,7 +16,7 @@ import numpy as np
 import pinocchio as pin
 from scipy.spatial import ConvexHull, QhullError
 
-from .stack import AXES, TaskSpec
+from .stack import AXES, TaskSpec, short_repr
 
 
 class TargetError(ValueError):
@@ -474,7 +474,7 @@ class PostureTask(Task):
         target = self.target.copy()
         for joint, value in positions.items():
             if not robot.model.existJointName(joint):
-                raise TargetError(f"posture target names unknown joint {joint!r}")
+                raise TargetError(f"posture target names unknown joint {short_repr(joint)}")
             joint_id = robot.model.getJointId(joint)
             if joint_id == 0:       # Pinocchio's world joint: its idx_q is -1
                 raise TargetError(f"posture target names {joint!r}, the world, not a joint "
