@@ -177,12 +177,17 @@ def configuration_from_msg(robot, q: np.ndarray, base_pose: Pose, names, positio
     return new_q
 
 
-def time_from_msg(stamp, field: str) -> Time:
-    """rclpy Time of a builtin_interfaces/Time; TargetError naming the field for a time
-    before the epoch, which rclpy refuses with a bare ValueError, or nanoseconds past a
-    second (a stamp not normalised)."""
+def check_stamp(stamp, field: str) -> None:
+    """TargetError naming the field for a builtin_interfaces/Time before the epoch, which
+    rclpy refuses with a bare ValueError, or with nanoseconds past a second (a stamp not
+    normalised)."""
     if stamp.sec < 0:
         raise TargetError(f"{field}: {stamp.sec} s, before the epoch")
     if stamp.nanosec >= 1_000_000_000:
         raise TargetError(f"{field}: nanosec {stamp.nanosec} is a second or more")
+
+
+def time_from_msg(stamp, field: str) -> Time:
+    """rclpy Time of a builtin_interfaces/Time checked by check_stamp."""
+    check_stamp(stamp, field)
     return Time.from_msg(stamp)

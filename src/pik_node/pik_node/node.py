@@ -59,10 +59,10 @@ from stance_msgs.msg import LevelStatus, SolverStatus, TaskStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 from std_msgs.msg import Header, String
 
-from .conversions import (check_task_frames, check_within_limits, check_world_frame,
-                          configuration_from_msg, joint_targets_from_msg, point_from_msg,
-                          polygon_from_msg, se3_from_pose_msg, spec_from_msg,
-                          time_from_msg)
+from .conversions import (check_stamp, check_task_frames, check_within_limits,
+                          check_world_frame, configuration_from_msg, joint_targets_from_msg,
+                          point_from_msg, polygon_from_msg, se3_from_pose_msg,
+                          spec_from_msg)
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # The per-step outputs: two seconds of history at 500 Hz. A reliable reader whose process
@@ -234,7 +234,7 @@ class PikNode(Node):
 
     def _apply_target(self, name, msg):
         try:
-            time_from_msg(msg.header.stamp, "header.stamp")     # reported in /pik/status
+            check_stamp(msg.header.stamp, "header.stamp")     # reported in /pik/status
             task = self.solver.task(name)
             kind = task.spec.kind
             if kind == "posture":
