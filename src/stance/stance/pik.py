@@ -350,19 +350,21 @@ class PIKSolver:
         compiled loop's), which the first solve restarts from. inequalities: the support
         tasks' (QPHierarchy's Inequalities), None without any."""
         iterations = 0
-        rows = {} if inequalities is None else {"inequalities": inequalities}
+        options = {} if inequalities is None else {"inequalities": inequalities}
         while True:
             equal, solve_bounds = fixed, bounds
-            if bounds is not None:     # damped joints bounded, not fixed (_damping_bounds)
+            if bounds is not None:     # damped joints bounded, not fixed (_damping_bounds);
+                #                        hot starts kept per fixed and damped joints
                 equal, lower, upper = _damping_bounds(fixed, fixed_dq, h, self.limits.v_index,
                                                       *bounds)
                 solve_bounds = (lower, upper)
+                options["kept_key"] = fixed
             index = equal.nonzero()[0]
             restart = {} if getattr(solution, "restart", None) is None else \
                 {"previous": solution}  # re-solve only the levels the new fixes touch
             solution = self.hierarchy.solve_stacked(jacobian, target, offsets, index,
                                                     fixed_dq[index], bounds=solve_bounds,
-                                                    **restart, **rows)
+                                                    **restart, **options)
             iterations += 1
             changed = False
             for model in self.limit_models:
@@ -582,7 +584,8 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
     levels leave them (first_level_out_of_bounds), or that starts outside them, is
     QPHierarchy's cascade (qp_hierarchy.cascade_compiled) when `cascades`, with
     cascade_state = (KeptActiveSets' four arrays, the hierarchy's counters, enforced
-    (nv), cascade residuals (levels)), the next solution then a fresh one as after
+    (nv), cascade residuals (levels)) and the fixed and damped DoFs (`fixed`) as the key
+    of its kept active sets, the next solution then a fresh one as after
     QPHierarchy.solve_stacked's cascade; the loop stops before the limit pass of a
     solution that leaves the bounds when not `cascades`, or when its cascade reaches a
     level whose hot start fails (ProxSuite's business).
@@ -590,7 +593,7 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
     whether it was a cascade's, then the last solution's fixed joints, their variations,
     level bases, ranks and starts: hierarchy.restartable_solution's)."""
     nv, levels = jacobian.shape[1], len(offsets) - 1
-    kept_free, kept_sides, kept_known, kept_used, counters, enforced, cascade_residuals = \
+    kept_keys, kept_sides, kept_known, kept_used, counters, enforced, cascade_residuals = \
         cascade_state
     level_bases = np.empty((levels, nv, nv))
     level_ranks = np.zeros(levels, dtype=np.int64)
@@ -621,9 +624,9 @@ def _clamping_loop(jacobian, target, offsets, q, limit_indices, limit_table, gro
             cascade_residuals[:] = 0.0
             reached = cascade_compiled(
                 jacobian, target, offsets, now_fixed, values, lower, upper, first,
-                level_bases, level_ranks, level_starts, residuals, kept_free, kept_sides,
-                kept_known, kept_used, counters, True, enforced, cascade_residuals, damping,
-                rank_tolerance)
+                level_bases, level_ranks, level_starts, residuals, fixed, kept_keys,
+                kept_sides, kept_known, kept_used, counters, True, enforced,
+                cascade_residuals, damping, rank_tolerance)
             dq = reached[1]
         if cascaded and (not cascades or reached[0] < levels):
             if first >= 0:          # the rest of the unconstrained solution to restart from

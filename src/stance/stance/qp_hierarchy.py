@@ -30,13 +30,15 @@ exact active-set fallback, and PIKSolver's compiled clamping loop runs it in the
 as long as the hot starts below find their KKT points.
 
 A level that crosses a bound is first polished from its hot start, the active set it
-ended with last time (kept by DoF, per level and per pattern of fixed DoFs: the clamping
-loop's solutions of one step fix different joints, and each changes little from the one
-that fixed the same joints a step before). The polish solves the problem with the active
-bounds as equalities exactly (nullspace method on a pivoted QR of the active rows, Q kept
-as its reflections, the damped least squares in their nullspace) and keeps the result
-when it is a KKT point: no bound violated, multipliers of the right sign (by NNLS at a
-degenerate vertex, where more bounds are active than y has variables).
+ended with last time (kept by DoF, per level and per key, by default the fixed DoFs: the
+clamping loop's solutions of one step fix or damp different joints, and each changes
+little from the one that fixed and damped the same joints a step before). The polish
+solves the problem with the active bounds as equalities exactly (nullspace method on a
+pivoted QR of the active rows, Q kept as its reflections, the damped least squares in
+their nullspace) and keeps the result when it is a KKT point: no bound violated (the
+active ones to rounding), multipliers of the right sign (or, at a degenerate vertex where
+more bounds are tight than the set's rank, the kept set's step or y = 0 certified by NNLS
+over all of them).
 Otherwise it corrects the set by Goldfarb and Idnani's dual method (the wrong-sign
 bounds leave until the set is dual feasible, then the most violated bound joins by
 partial steps that keep every multiplier's sign, a dependent one replacing the bound
@@ -138,11 +140,14 @@ class Inequalities(NamedTuple):
 
 
 class KeptActiveSets(NamedTuple):
-    """The active sets cascades ended with, per level, for up to MAX_KEPT_SETS patterns of
-    fixed DoFs (slots): the clamping loop's solutions of one step fix different joints, and
-    each is most like the one that fixed the same joints a step before."""
+    """The active sets cascades ended with, per level, for up to MAX_KEPT_SETS keys (slots):
+    a key is a pattern of DoFs, by default the fixed ones. The clamping loop's solutions of
+    one step fix or damp different joints, and each is most like the one that fixed and
+    damped the same joints a step before: it keys its solves by both (on the QP hierarchy
+    a damped joint is bounded, not fixed, so its fixed DoFs alone do not tell the step's
+    solutions apart, and each started from the other's set)."""
 
-    free: np.ndarray     # slots x nv, bool: the free DoFs of the slot's solves
+    keys: np.ndarray     # slots x nv, bool: the key of the slot's solves
     sides: np.ndarray    # slots x levels x nv, int8: +1 upper, -1 lower, 0 inactive
     known: np.ndarray    # slots x levels, bool: whether the level has one
     used: np.ndarray     # slots, int64: when the slot was last used (0: empty), later larger
@@ -201,7 +206,8 @@ class QPHierarchy:
         self.unconverged = 0      # of which the exact solve ran out of iterations: its step
         #                           is feasible but not shown optimal
         self.qp_iterations = 0    # ProxSuite's inner iterations, warm and cold solves
-        self._counters = np.zeros(1, dtype=np.int64)  # [hot starts], filled when compiled
+        self._counters = np.zeros(2, dtype=np.int64)  # [hot starts, polish solves], filled
+        #                                               when compiled
         self._cascade_state = empty_cascade_state(0, 0, self._counters)
         self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
         self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of the kept sets
@@ -219,17 +225,20 @@ class QPHierarchy:
         return self.solve_stacked(*stack_levels(levels, nv), fixed_index, fixed_dq, bounds)
 
     def solve_stacked(self, jacobian, target, offsets, fixed_index=(), fixed_dq=(),
-                      bounds=None, previous=None, inequalities=None) -> HierarchySolution:
+                      bounds=None, previous=None, inequalities=None,
+                      kept_key=None) -> HierarchySolution:
         """Levels stacked by stack_levels(); fixed DoFs dq[fixed_index] = fixed_dq come first,
         then bounds = (lower, upper) per DoF (nv each, +-inf where unbounded) on the others
         (a free DoF whose bounds exclude 0 starts on the nearer one) and the levels'
         Inequalities, if any. previous: as for DampedHierarchy.solve_stacked (used when it
-        came from the unconstrained solve)."""
+        came from the unconstrained solve). kept_key: bool (nv), which kept active sets a
+        cascade hot-starts from and keeps (KeptActiveSets; default: the fixed DoFs)."""
         nv = jacobian.shape[1]
         free = np.ones(nv, dtype=bool)
         free[np.asarray(fixed_index, dtype=int)] = False
         lower, upper = _checked_bounds(bounds, nv)
         level_count, fixed = len(offsets) - 1, ~free
+        key = fixed if kept_key is None else np.asarray(kept_key, dtype=bool).reshape(nv)
         if inequalities is not None and not len(inequalities.room):
             inequalities = None
         if inequalities is not None:
@@ -237,9 +246,9 @@ class QPHierarchy:
         if excludes_zero(fixed, lower, upper):  # 0 is out: no level is kept
             if inequalities is not None:
                 return self._row_cascade(jacobian, target, offsets, fixed_index, fixed_dq,
-                                         lower, upper, inequalities)
+                                         lower, upper, inequalities, key)
             return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free,
-                                 lower, upper)
+                                 lower, upper, key)
         # a restart keeps the previous solution's levels above its restart level (their
         # starts without the newly fixed joints' values, which their rows ignore): the
         # first level out is sought among them too, since the bounds may be new
@@ -251,9 +260,9 @@ class QPHierarchy:
             return solution
         if inequalities is not None:
             return self._row_cascade(jacobian, target, offsets, fixed_index, fixed_dq, lower,
-                                     upper, inequalities, solution, first)
+                                     upper, inequalities, key, solution, first)
         return self._cascade(jacobian, target, offsets, fixed_index, fixed_dq, free, lower,
-                             upper, solution, first)
+                             upper, key, solution, first)
 
     @staticmethod
     def _first_level_out(level_starts, fixed, lower, upper, inequalities):
@@ -265,12 +274,12 @@ class QPHierarchy:
         return min(first, _first_level_out_of_rows(level_starts, inequalities))
 
     def _row_cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, lower, upper,
-                     inequalities, unconstrained=None, first=0) -> HierarchySolution:
+                     inequalities, key, unconstrained=None, first=0) -> HierarchySolution:
         """The cascade with inequality rows: from level 0, or from `first` of the
         unconstrained solution, whose levels above it keep the bounds and rows. Compiled
         (_row_levels), but for the levels whose hot start fails, which ProxSuite solves
-        here (_qp_rows_step); active sets kept per level and pattern of fixed DoFs, by DoF
-        and by row, as the bounds-only cascade keeps them."""
+        here (_qp_rows_step); active sets kept per level and key (bool, nv), by DoF and by
+        row, as the bounds-only cascade keeps them."""
         nv, level_count = jacobian.shape[1], len(offsets) - 1
         fixed, values = np.zeros(nv, dtype=bool), np.zeros(nv)
         fixed[np.asarray(fixed_index, dtype=int)] = True
@@ -292,7 +301,7 @@ class QPHierarchy:
         room = inequalities.room.copy()   # relaxed to what each declaring level left
         row_level = inequalities.level.copy()   # a row out of reach leaves the inequalities
         kept = self._kept_row_sets(level_count, nv, len(room))
-        slot = _kept_slot(~fixed, *kept)
+        slot = _kept_slot(key, *kept)
         sides, known = kept.sides[slot], kept.known[slot]
         if not self.hot_start:
             known[:] = False
@@ -321,7 +330,7 @@ class QPHierarchy:
         (emptied when the shape changes: a new stack or polygon)."""
         kept = self._row_kept
         if kept is None or kept.sides.shape[1:] != (level_count, nv + row_count) or \
-                kept.free.shape[1] != nv:
+                kept.keys.shape[1] != nv:
             kept = self._row_kept = KeptActiveSets(
                 np.zeros((MAX_KEPT_SETS, nv), dtype=np.bool_),
                 np.zeros((MAX_KEPT_SETS, level_count, nv + row_count), dtype=np.int8),
@@ -330,9 +339,10 @@ class QPHierarchy:
         return kept
 
     def _cascade(self, jacobian, target, offsets, fixed_index, fixed_dq, free, lower, upper,
-                 unconstrained=None, first=0):
+                 key, unconstrained=None, first=0):
         """The level by level solve of the module docstring (free: bool (nv), the DoFs not
-        in fixed_index; lower, upper: bounds (nv each)): compiled (cascade_compiled), but
+        in fixed_index; lower, upper: bounds (nv each); key: the kept active sets' (bool,
+        nv)): compiled (cascade_compiled), but
         for the levels whose hot start fails, which ProxSuite solves here. unconstrained:
         DampedHierarchy's solution of the same problem, whose levels before `first` stay
         within the bounds (first_level_out_of_bounds): the cascade keeps them and starts
@@ -349,7 +359,7 @@ class QPHierarchy:
             *((_NO_LEVEL_BASES, _NO_LEVEL_RANKS, _NO_LEVEL_STARTS, _NO_RESIDUALS)
               if state is None else (state.level_bases, state.level_ranks,
                                      state.level_starts, unconstrained.step_residuals)),
-            *cascade_state[:5], self.hot_start, enforced, residuals, self.damping,
+            key, *cascade_state[:5], self.hot_start, enforced, residuals, self.damping,
             self.rank_tolerance)
         kept = KeptActiveSets(*cascade_state[:4])
         self._active_sides, self._known_sides = kept.sides[slot], kept.known[slot]
@@ -394,6 +404,13 @@ class QPHierarchy:
         """Levels whose bounds crossed, solved from the level's previous active set."""
         return int(self._counters[0])
 
+    @property
+    def polish_solves(self) -> int:
+        """Equality-constrained solves of the polish (_polish: one per active set it
+        tries), from hot starts and ProxSuite's duals alike: 1 per polish where the kept
+        set is the answer."""
+        return int(self._counters[1])
+
     def _qp_level_step(self, level, projected, residual, basis, dq, bounded, lower, upper):
         """(y, DoFs of the active bounds) of a level whose hot start failed
         (_qp_rows_step); the active set is kept."""
@@ -415,7 +432,7 @@ class QPHierarchy:
                               high).results.z
         step, active, upper_side, status = _polish(
             projected, residual, self.damping, rows, low, high,
-            *_signed_start(dual, slack, low, high), slack)
+            *_signed_start(dual, slack, low, high), slack, self._counters)
         if status != CERTIFIED:  # ProxSuite's answer is not certified: solve exactly instead
             self.unpolished += 1
             step, active, upper_side, converged = _active_set_solve(
@@ -534,16 +551,17 @@ def _ordered(lower, upper):
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def cascade_compiled(jacobian, target, offsets, fixed, values, lower, upper, first,
-                     level_bases, level_ranks, level_starts, unconstrained_residuals,
-                     kept_free, kept_sides, kept_known, kept_used, counters, hot_start,
+                     level_bases, level_ranks, level_starts, unconstrained_residuals, key,
+                     kept_keys, kept_sides, kept_known, kept_used, counters, hot_start,
                      enforced, residuals, damping, rank_tolerance):
     """QPHierarchy._cascade in one compiled call, up to the first level whose hot start
     fails (no kept active set, or no KKT point from it), with the fixed DoFs (bool, nv)
     at `values` (nv, 0 where free): from level 0 when first < 0, else from level `first`
     of an unconstrained solution (solve_compiled's level_bases, level_ranks and
     level_starts, its residuals), whose levels before it are kept. The kept active sets
-    (KeptActiveSets' arrays), the counters, `enforced` (bool, nv: DoFs whose bounds a
-    level enforced) and `residuals` (levels) are updated in place.
+    (KeptActiveSets' arrays; those of `key`, bool nv, hot-start), the counters,
+    `enforced` (bool, nv: DoFs whose bounds a level enforced) and `residuals` (levels)
+    are updated in place.
     Returns (the level reached, the level count when all are solved; dq, and the basis,
     P and r that level starts from; the bounded free DoFs; the kept set's slot)."""
     if first < 0:
@@ -557,9 +575,8 @@ def cascade_compiled(jacobian, target, offsets, fixed, values, lower, upper, fir
         dq, basis = level_start_state(first, fixed, values, level_bases, level_ranks,
                                       level_starts, rank_tolerance)
         residuals[:first] = unconstrained_residuals[:first]
-    free = ~fixed
-    bounded = np.flatnonzero(free & (np.isfinite(lower) | np.isfinite(upper)))
-    slot = _kept_slot(free, kept_free, kept_sides, kept_known, kept_used)
+    bounded = np.flatnonzero(~fixed & (np.isfinite(lower) | np.isfinite(upper)))
+    slot = _kept_slot(key, kept_keys, kept_sides, kept_known, kept_used)
     if not hot_start:
         kept_known[slot] = False
     level, basis, projected, residual = _cascade_levels(
@@ -570,13 +587,13 @@ def cascade_compiled(jacobian, target, offsets, fixed, values, lower, upper, fir
 
 
 @numba.njit(cache=True)
-def _kept_slot(free, kept_free, kept_sides, kept_known, kept_used):
-    """The slot of KeptActiveSets (its arrays, updated in place) for solves with these free
-    DoFs, marked as the one used last. A new pattern takes an empty slot, else the least
+def _kept_slot(key, kept_keys, kept_sides, kept_known, kept_used):
+    """The slot of KeptActiveSets (its arrays, updated in place) for solves with this key
+    (bool, nv), marked as the one used last. A new key takes an empty slot, else the least
     recently used one, and starts from a copy of the sets used last."""
     last = np.argmax(kept_used)
     for slot in range(len(kept_used)):
-        if kept_used[slot] > 0 and np.array_equal(kept_free[slot], free):
+        if kept_used[slot] > 0 and np.array_equal(kept_keys[slot], key):
             if slot != last:
                 kept_used[slot] = kept_used[last] + 1
             return slot
@@ -584,7 +601,7 @@ def _kept_slot(free, kept_free, kept_sides, kept_known, kept_used):
     if kept_used[last] > 0:
         kept_sides[slot] = kept_sides[last]
         kept_known[slot] = kept_known[last]
-    kept_free[slot] = free
+    kept_keys[slot] = key
     kept_used[slot] = kept_used[last] + 1
     return slot
 
@@ -606,8 +623,8 @@ def _cascade_levels(jacobian, target, offsets, level, dq, basis, bounded, lower,
                     active_sides, known_sides, enforced, residuals, counters, damping,
                     rank_tolerance, given_step, given_dofs):
     """QPHierarchy._cascade's levels from `level` on, dq, enforced, residuals, the kept
-    active sets and counters (hot starts) updated in place, until a level's hot start
-    fails (no kept active set, or no KKT point from it). given_step: `level`'s step when
+    active sets and counters (hot starts, polish solves) updated in place, until a level's
+    hot start fails (no kept active set, or no KKT point from it). given_step: `level`'s step when
     QPHierarchy solved it (empty otherwise), given_dofs: the DoFs of its active bounds;
     the level is solved again from the active set kept then, so that its step is computed
     by the same code whether it came from ProxSuite or from a hot start (the same bits for
@@ -623,7 +640,7 @@ def _cascade_levels(jacobian, target, offsets, level, dq, basis, bounded, lower,
             residual = wanted - _times(rows, dq)
             step, status = _level_step(projected, residual, basis, dq, bounded, lower, upper,
                                        active_sides[level], known_sides[level], enforced,
-                                       damping)
+                                       damping, counters)
             if status == NO_KKT_POINT:
                 if not len(given_step):   # the caller's ProxSuite keeps a new set: the
                     known_sides[level] = False   # failed one is not polished again first
@@ -691,7 +708,7 @@ def _row_levels(jacobian, target, offsets, level, dq, basis, bounded, lower, upp
                 if known[level]:
                     polished, active, upper_side, status = _polish(
                         design, goal, damping, constraint, low, high, active, upper_side,
-                        _multiplier_slack(design, goal))
+                        _multiplier_slack(design, goal), counters)
                 if status == CERTIFIED:
                     step = polished
                     _remember_rows(side, nv, dofs, declared, active, upper_side)
@@ -787,11 +804,12 @@ def _remember_rows(side, nv, dofs, declared, active, upper_side):
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _level_step(projected, residual, basis, dq, bounded, lower, upper, active_side, known,
-                enforced, damping):
+                enforced, damping, counters):
     """(y, FREE) when the level's damped least squares step keeps within the bounds (the
     ones a QP left a hair outside not further out), (y, CERTIFIED) when the polish from the
     level's kept active set (active_side: +1 upper, -1 lower, 0 inactive per DoF; known:
-    whether there is one) finds the KKT point, which is then kept; else (_, NO_KKT_POINT)."""
+    whether there is one) finds the KKT point, which is then kept; else (_, NO_KKT_POINT).
+    counters: the hierarchy's (the polish counts its solves)."""
     step = _damped_least_squares(projected, residual, damping * damping)
     dofs, rows, low, high = _level_bounds(basis, dq, bounded, lower, upper)
     reach = rows @ step
@@ -801,7 +819,7 @@ def _level_step(projected, residual, basis, dq, bounded, lower, upper, active_si
         return step, NO_KKT_POINT
     step, active, upper_side, status = _polish(projected, residual, damping, rows, low, high,
                                                *_signed_start(active_side[dofs], 0, low, high),
-                                               _multiplier_slack(projected, residual))
+                                               _multiplier_slack(projected, residual), counters)
     if status == CERTIFIED:
         _remember(active_side, dofs, active, upper_side)
         enforced[dofs[active]] = True
@@ -861,7 +879,8 @@ def _remember(active_side, dofs, active, upper_side):
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _polish(projected, residual, damping, rows, low, high, active, upper_side, slack):
+def _polish(projected, residual, damping, rows, low, high, active, upper_side, slack,
+            counters):
     """Exact solution of the level's QP from an active set of bounds: (y, active row mask,
     upper-side mask, status), status CERTIFIED when the KKT conditions hold (no bound
     violated, multipliers of the right sign within `slack`, by NNLS on a degenerate
@@ -874,7 +893,8 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
     objective rises at every step, so no set repeats (swapping the most violated bound
     and the worst multiplier in turn cycled: 9 in 10 hot starts failed on Talos' hands
     reaching out, some from the very optimal set). Each solve minimizes in the nullspace
-    of its rows, in index order (_on_active_rows), at most POLISH_ROUNDS of them."""
+    of its rows, in index order (_on_active_rows), at most POLISH_ROUNDS of them, each
+    counted in counters[1] (the hierarchy's polish solves)."""
     active, upper_side = active.copy(), upper_side.copy()
     signed = np.zeros(len(low))     # multipliers, positive when right (active rows' only)
     step, solves = np.zeros(projected.shape[1]), 0
@@ -882,13 +902,16 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         if solves == POLISH_ROUNDS:
             return step, active, upper_side, NO_KKT_POINT
         solves += 1
+        counters[1] += 1
         index = np.flatnonzero(active)
         value = np.where(upper_side[index], high[index], low[index])
         active_rows = np.ascontiguousarray(rows[index])
         step, multiplier, factorization, _ = _on_active_rows(projected, residual, damping,
                                                              active_rows, value, -1)
-        missed = np.abs(active_rows @ step - value) > FEASIBILITY_SLACK
-        if np.any(missed):          # dependent active rows that disagree: not a vertex
+        dependent = factorization[3][factorization[4]:]   # the rows past the rank, which
+        missed = dependent[np.abs(active_rows[dependent] @ step - value[dependent])
+                           > FEASIBILITY_SLACK]           # the solve did not impose
+        if len(missed):             # dependent active rows that disagree: not a vertex
             active[index[missed]] = False
             continue
         side = np.where(upper_side[index], 1.0, -1.0)
@@ -897,13 +920,19 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         if len(index) == 0 or np.min(signed[index]) >= -slack:
             break
         rank = factorization[4]
-        if solves == 1 and rank < len(index):
-            reach = rows @ step
-            if _within_bounds(reach, low, high) and _nonnegative_residual(
-                    np.ascontiguousarray(active_rows.T * side),
-                    _descent(projected, residual, damping, step), slack) <= slack:
-                return _on_tight_rows(projected, residual, damping, rows, low, high, reach,
-                                      step, active, upper_side)
+        if solves == 1:             # the kept set's multipliers are not all right: its step
+            #                         may be a degenerate vertex all the same, or y = 0
+            #                         (always feasible) may be the optimum
+            for trial, trial_rank in ((step, rank), (np.zeros_like(step), 0)):
+                reach = rows @ trial
+                if not _within_bounds(reach, low, high):
+                    continue
+                certified, on, on_upper = _certifying_tight_rows(
+                    projected, residual, damping, rows, low, high, reach, trial, trial_rank,
+                    slack)
+                if certified:
+                    return _on_tight_rows(projected, residual, damping, rows, low, high,
+                                          reach, trial, on, on_upper)
         if rank < len(index):       # dependent rows that agree leave: y stays, and the
             active[index[factorization[3][rank:]]] = False   # set is independent
             continue
@@ -911,6 +940,10 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
     while True:                     # the most violated bound joins, until none is
         reach = rows @ step
         excess = np.maximum(reach - high, low - reach)
+        rounding = FEASIBILITY_SLACK * (1.0 + np.max(np.abs(step)))
+        for row in range(len(excess)):  # the rows solved on miss theirs by rounding only
+            if active[row] and excess[row] <= rounding:     # (1e-11 on a step of 1e5)
+                excess[row] = -np.inf
         joining = np.argmax(excess)
         if excess[joining] <= FEASIBILITY_SLACK:
             return _on_tight_rows(projected, residual, damping, rows, low, high, reach,
@@ -923,6 +956,7 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
             if solves == POLISH_ROUNDS:
                 return step, active, upper_side, NO_KKT_POINT
             solves += 1
+            counters[1] += 1
             index = np.flatnonzero(active)
             active[joining] = True  # solved with it, in index order
             members = np.flatnonzero(active)
@@ -969,6 +1003,44 @@ def _within_bounds(reach, low, high):
     return np.all((reach - high <= FEASIBILITY_SLACK) & (low - reach <= FEASIBILITY_SLACK))
 
 
+@numba.njit(cache=True)
+def _tight(reach, low, high):
+    """(tight, on the upper side) row masks: the bounds that rows reaching `reach` are on,
+    within FEASIBILITY_SLACK (the upper one first)."""
+    on_upper = (np.abs(reach - high) <= FEASIBILITY_SLACK) & np.isfinite(high)
+    return on_upper | ((np.abs(reach - low) <= FEASIBILITY_SLACK) & np.isfinite(low)), on_upper
+
+
+@numba.njit(cache=True, fastmath=REORDERING)
+def _certifying_tight_rows(projected, residual, damping, rows, low, high, reach, step,
+                           rank, slack):
+    """(certified, active, upper_side) for a feasible step (reaching `reach`) that the set
+    it was solved on (of this rank; 0 for y = 0) does not certify: at a degenerate vertex,
+    more bounds tight than that rank (a level held at y = 0 by more bounds than it has
+    variables, or dependent rows), the multipliers are not unique, and the descent g - H y
+    may be a nonnegative combination of the tight bounds' outward normals (NNLS within
+    `slack`) although the set's own multipliers have a wrong sign; active, upper_side: the
+    row masks of its bounds of positive multiplier, the set that certifies it. With no
+    more bounds tight than the rank, the multipliers are unique: not certified. A nearly
+    dependent kept set (smallest singular value 1e-6) gave multipliers of 1e9 and a step
+    of 1e4 where y = 0 was the optimum, and the dual method dropped and added back its 19
+    bounds one by one."""
+    tight, on_upper = _tight(reach, low, high)
+    index = np.flatnonzero(tight)
+    fitting = np.zeros(len(low), dtype=np.bool_)
+    if len(index) <= rank:
+        return False, fitting, on_upper
+    normals = np.empty((rows.shape[1], len(index)))   # outward, as columns
+    for column in range(len(index)):
+        sign = 1.0 if on_upper[index[column]] else -1.0
+        for variable in range(rows.shape[1]):
+            normals[variable, column] = sign * rows[index[column], variable]
+    multipliers, missed = _nonnegative_fit(normals, _descent(projected, residual, damping,
+                                                             step), slack)
+    fitting[index[multipliers > 0.0]] = True
+    return missed <= slack, fitting, on_upper & fitting
+
+
 @numba.njit(cache=True, fastmath=REORDERING)
 def _on_tight_rows(projected, residual, damping, rows, low, high, reach, step, active,
                    upper_side):
@@ -977,10 +1049,13 @@ def _on_tight_rows(projected, residual, damping, rows, low, high, reach, step, a
     two of them, and steps 3e-14 apart). Every bound the step is on (within
     FEASIBILITY_SLACK; the upper one first) holds at the optimum, so the optimum on all
     of them as equalities is the same point: solved again on them, unless they are the
-    set the step already came from. Returns _polish's tuple with the certifying set (the better
-    hot start: the tight set's extra rows would only have to leave again)."""
-    on_upper = (np.abs(reach - high) <= FEASIBILITY_SLACK) & np.isfinite(high)
-    tight = on_upper | ((np.abs(reach - low) <= FEASIBILITY_SLACK) & np.isfinite(low))
+    set the step already came from. The active bounds count as tight however far rounding
+    left the step from them (1e-11 on a step of 1e5). Returns _polish's tuple with the
+    certifying set (the better hot start: the tight set's extra rows would only have to
+    leave again)."""
+    tight, on_upper = _tight(reach, low, high)
+    on_upper |= active & upper_side & ~tight
+    tight |= active
     if np.array_equal(tight, active) and \
             np.array_equal(on_upper, upper_side & active):
         return step, active, upper_side, CERTIFIED
@@ -1048,8 +1123,8 @@ def _descent(projected, residual, damping, step):
 @numba.njit(cache=True, fastmath=REORDERING)
 def _leaving_bound(factorization, joining, multiplier, side):
     """(index, share): index (into the active rows of a _pivoted_qr factorization, their
-    multipliers and sides +-1) of the bound that a joining one replaces when its outward normal `joining`
-    depends on the active rows (Goldfarb and Idnani's dual step): with joining =
+    multipliers and sides +-1) of the bound that a joining one replaces when its outward
+    normal `joining` depends on the active rows (Goldfarb and Idnani's dual step): with joining =
     sum_i c_i side_i (side_i row_i), the one of least lambda_i / (c_i side_i) over
     c_i side_i > 0, lambda_i = multiplier_i side_i (the first multiplier that raising the
     joining one's drives to 0); -1 when joining is independent of the active rows (none
@@ -1192,8 +1267,9 @@ def _basic_solution(factorization, rhs):
 
 
 @numba.njit(cache=True, fastmath=REORDERING)
-def _nonnegative_residual(matrix, rhs, tolerance):
-    """min |matrix x - rhs| over x >= 0 (Lawson-Hanson NNLS; iterations capped)."""
+def _nonnegative_fit(matrix, rhs, tolerance):
+    """(x, |matrix x - rhs|) minimizing |matrix x - rhs| over x >= 0 (Lawson-Hanson NNLS;
+    iterations capped)."""
     columns = matrix.shape[1]
     x = np.zeros(columns)
     passive = np.zeros(columns, dtype=np.bool_)
@@ -1226,7 +1302,7 @@ def _nonnegative_residual(matrix, rhs, tolerance):
                 if x[index[i]] <= 0.0:
                     x[index[i]] = 0.0
                     passive[index[i]] = False
-    return np.sqrt(np.sum((matrix @ x - rhs) ** 2))
+    return x, np.sqrt(np.sum((matrix @ x - rhs) ** 2))
 
 
 def _active_set_solve(projected, residual, damping, rows, low, high):
