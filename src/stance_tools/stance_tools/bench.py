@@ -489,8 +489,9 @@ def level_figures(records, contenders, steps) -> dict:
     """Per contender: timing (us), mean clamping iterations, worst limit excess (rad), the
     median ratio of n levels over n - 1 levels of the same hierarchy, and for the QP
     hierarchy its counters per step over all `steps` (warm-up included): levels whose
-    bounds crossed solved from their hot start, levels ProxSuite solved, its cold starts,
-    its solutions the polish could not certify, exact solves out of iterations."""
+    bounds crossed solved from their hot start, the polish's solves, levels ProxSuite
+    solved, its cold starts, its solutions the polish could not certify, exact solves out
+    of iterations."""
     result = {}
     for contender in contenders:
         record = records[contender.name]
@@ -502,8 +503,8 @@ def level_figures(records, contenders, steps) -> dict:
                  "max_limit_excess": record.max_limit_excess,
                  **{f"{counter}_per_step": (getattr(hierarchy, counter) / steps
                                             if hasattr(hierarchy, counter) else None)
-                    for counter in ("hot_starts", "qp_solves", "cold_starts",
-                                    "unpolished", "unconverged")}}
+                    for counter in ("hot_starts", "polish_solves", "qp_solves",
+                                    "cold_starts", "unpolished", "unconverged")}}
         entry["over_one_level_less"] = (entry["median_us"] / previous["median_us"]
                                         if previous else None)
         result[contender.name] = entry
@@ -512,11 +513,11 @@ def level_figures(records, contenders, steps) -> dict:
 
 def print_level_table(title, result) -> None:
     print(title)
-    counters = ("hot_starts_per_step", "qp_solves_per_step", "cold_starts_per_step",
-                "unpolished_per_step", "unconverged_per_step")
+    counters = ("hot_starts_per_step", "polish_solves_per_step", "qp_solves_per_step",
+                "cold_starts_per_step", "unpolished_per_step", "unconverged_per_step")
     print(f"{'contender':<16}{'median us':>10}{'p99 us':>10}{'max us':>10}{'iters':>7}"
-          f"{'excess rad':>12}{'x previous':>12}{'hot':>7}{'QPs':>7}{'cold':>7}{'unpol':>7}"
-          f"{'uncon':>7}")
+          f"{'excess rad':>12}{'x previous':>12}{'hot':>7}{'polish':>7}{'QPs':>7}{'cold':>7}"
+          f"{'unpol':>7}{'uncon':>7}")
     for name, entry in result.items():
         ratio = entry["over_one_level_less"]
         print(f"{name:<16}{entry['median_us']:>10.1f}{entry['p99_us']:>10.1f}"
@@ -587,8 +588,9 @@ def run_levels(args) -> int:
                       f"moved (0.2, 0.2, -0.2) m", results["panda"])
     print("x previous: median over the same hierarchy's median with one level less; iters: "
           "mean hierarchy solutions per step; excess: worst limit violation over the run; "
-          "hot, QPs, cold, unpol, uncon: per step (warm-up included), levels whose bounds "
-          "crossed solved from their previous active set, levels ProxSuite solved, its cold "
+          "hot, polish, QPs, cold, unpol, uncon: per step (warm-up included), levels whose "
+          "bounds crossed solved from their previous active set, the polish's solves (one "
+          "per level where that set holds), levels ProxSuite solved, its cold "
           "starts, its solutions the polish could not certify, exact solves out of "
           "iterations (feasible, not shown optimal)")
     if args.json:
@@ -704,15 +706,17 @@ def spherical_joint_loops(args) -> dict:
 # ---------------------------------------------------------------------------------------
 
 SOLE_HALF_SIZE = (0.10, 0.05)   # m: Talos' sole patch (data/scenes), about each sole frame
-SUPPORT_SCENARIOS = {   # hand offsets (m, world): the CoM stays inside; it would leave
-    "hands forward": HANDS_FORWARD,
-    "reach far": mirrored_hands((0.7, -0.2, -0.3)),
-}
+SUPPORT_SCENARIOS = {   # (hand offsets (m, world), polygon shift (m, world x)): the CoM
+    "hands forward": (HANDS_FORWARD, 0.0),                   # stays inside;
+    "reach far": (mirrored_hands((0.7, -0.2, -0.3)), 0.0),   # it would leave;
+    "polygon ahead": (HANDS_FORWARD, 3.0),   # a polygon out of reach: the CoM heads for it
+}                                            # until the body is stretched on its bounds
 
 
-def support_solver(robot, start, targets, dt, balance):
+def support_solver(robot, start, targets, dt, balance, shift=0.0):
     """PIKSolver on the QP hierarchy, the issue's stack with its CoM level as `balance`:
-    "com" (CoM xy held, an equality) or "support" (CoM xy inside the soles' hull)."""
+    "com" (CoM xy held, an equality) or "support" (CoM xy inside the soles' hull, moved
+    `shift` m along world x)."""
     import pinocchio as pin
 
     from stance.pik import PIKSolver
@@ -727,7 +731,7 @@ def support_solver(robot, start, targets, dt, balance):
         if spec.kind == "support":
             pin.framesForwardKinematics(robot.model, robot.data, start)
             solver.task(spec.name).set_target(frame_rectangle_corners(
-                robot, ("left_sole_link", "right_sole_link"), SOLE_HALF_SIZE))
+                robot, ("left_sole_link", "right_sole_link"), SOLE_HALF_SIZE) + [shift, 0.0])
         else:
             solver.task(spec.name).target = targets[spec.name]
     return solver
@@ -748,40 +752,49 @@ def run_support(args) -> int:
           f"{args.warmup} warm-up, interleaved, one BLAS thread; balance: com = CoM xy held "
           f"(equality), support = CoM xy inside the soles' hull (inequality rows)")
     print(f"{'scenario':<15}{'balance':<9}{'median us':>10}{'p99 us':>10}{'max us':>10}"
-          f"{'iters':>7}{'x com':>7}{'hands m':>9}{'outside m':>11}")
-    for scenario, offsets in SUPPORT_SCENARIOS.items():
+          f"{'iters':>7}{'polish':>8}{'QPs':>6}{'x com':>7}{'hands m':>9}{'outside m':>11}")
+    for scenario, (offsets, shift) in SUPPORT_SCENARIOS.items():
         targets = bench_targets(talos, specs, start, offsets)
         with threadpool_limits(limits=1):
             contenders = [SolverContender(balance, support_solver(talos, start, targets,
-                                                                  args.dt, balance))
+                                                                  args.dt, balance, shift))
                           for balance in ("com", "support")]
             race(contenders, talos, start, args.warmup)
+            counted = {contender.name: (contender.solver.hierarchy.polish_solves,
+                                        contender.solver.hierarchy.qp_solves)
+                       for contender in contenders}
             records = race(contenders, talos, start, args.steps)
         result = {}
         for contender in contenders:
-            record = records[contender.name]
+            record, hierarchy = records[contender.name], contender.solver.hierarchy
+            polished, solved = counted[contender.name]
             final = contender.solver.step(record.q)
-            support = support_solver(talos, start, targets, args.dt, "support")
+            support = support_solver(talos, start, targets, args.dt, "support", shift)
             support.compute_kinematics(record.q)
             result[contender.name] = {
                 **timing_us(record), "mean_clamping_iterations": float(np.mean(
                     record.iterations)),
+                "polish_solves_per_step": (hierarchy.polish_solves - polished) / args.steps,
+                "qp_solves_per_step": (hierarchy.qp_solves - solved) / args.steps,
                 "hand_error_m": float(np.hypot(final.task_errors["left_hand"],
                                                final.task_errors["right_hand"])),
                 "com_outside_m": support.task("balance").distance_outside(talos)}
         result["ratio"] = result["support"]["median_us"] / result["com"]["median_us"]
-        results[scenario] = {"hand_offsets": offsets, **result}
+        results[scenario] = {"hand_offsets": offsets, "polygon_shift_m": shift, **result}
         for name in ("com", "support"):
             entry = result[name]
             ratio = f"{result['ratio']:.2f}" if name == "support" else "-"
             print(f"{scenario:<15}{name:<9}{entry['median_us']:>10.1f}"
                   f"{entry['p99_us']:>10.1f}{entry['max_us']:>10.1f}"
-                  f"{entry['mean_clamping_iterations']:>7.2f}{ratio:>7}"
-                  f"{entry['hand_error_m']:>9.3f}{entry['com_outside_m']:>11.1e}")
-    print("hand offsets (m, world): " + "; ".join(
-        f"{scenario} {offsets}" for scenario, offsets in SUPPORT_SCENARIOS.items())
-        + "; hands m: both hands' final position and orientation error; outside m: the final"
-        " CoM's distance outside the soles' hull")
+                  f"{entry['mean_clamping_iterations']:>7.2f}"
+                  f"{entry['polish_solves_per_step']:>8.2f}{entry['qp_solves_per_step']:>6.2f}"
+                  f"{ratio:>7}{entry['hand_error_m']:>9.3f}{entry['com_outside_m']:>11.1e}")
+    print("hand offsets (m, world), polygon shift (m, x): " + "; ".join(
+        f"{scenario} {offsets}, {shift}" for scenario, (offsets, shift)
+        in SUPPORT_SCENARIOS.items())
+        + "; polish, QPs: per timed step, the polish's solves and the levels ProxSuite solved;"
+        " hands m: both hands' final position and orientation error; outside m: the final"
+        " CoM's distance outside the soles' hull (shifted)")
     if args.json:
         with open(args.json, "w") as output:
             json.dump({"steps": args.steps, "warmup": args.warmup, "dt": args.dt, **results},
