@@ -746,7 +746,7 @@ def test_polish_certifies_a_large_step_on_its_active_set_at_once(seed):
     misses its independent active rows by 1e-11. Only rows past the rank of the active
     set are checked for a miss: hot-started on the optimum's set, the polish certifies
     it with one solve. Checking every active row dropped the ones rounding missed, and a
-    polish took 46-48 solves (half the levels of that run ran out of rounds)."""
+    polish took 46-48 solves (some levels of that run ran out of rounds)."""
     rng = np.random.default_rng(seed)
     variables, bounds = 12, 8
     projected = DAMPING * rng.uniform(0.5, 2.0) * np.linalg.qr(
