@@ -827,3 +827,23 @@ def test_nonnegative_fit_survives_a_column_left_out_by_the_rank_cut():
                                    np.array([1.0, 30.0]), 2e-12)
     assert np.all(np.isfinite(x)) and np.all(x >= 0.0)
     assert np.isfinite(residual) and residual <= np.hypot(1.0, 30.0)
+
+
+@pytest.mark.parametrize("rotate", [qp_hierarchy._transposed_q_rows,
+                                    getattr(qp_hierarchy._transposed_q_rows, "py_func",
+                                            qp_hierarchy._transposed_q_rows)],
+                         ids=["compiled", "python"])
+@pytest.mark.parametrize("wanted", [1, 3])
+def test_rotating_a_task_leaves_it_untouched(rotate, wanted):
+    """(P Q)^T of a one-row P (contiguous either way, which NumPy's ascontiguousarray hands
+    back uncopied) and of a Fortran-ordered P: Q^T P^T, P unchanged."""
+    rng = np.random.default_rng(wanted)
+    active_rows, projected = rng.normal(size=(2, 5)), rng.normal(size=(wanted, 5))
+    factorization = qp_hierarchy._pivoted_qr(np.ascontiguousarray(active_rows.T), -1)
+    q = np.eye(5)
+    for reflector, scale in zip(factorization[0], factorization[1]):
+        q = q @ (np.eye(5) - scale * np.outer(reflector, reflector))
+    for task in (projected, np.asfortranarray(projected)):
+        before = task.copy()
+        np.testing.assert_allclose(rotate(factorization, task), q.T @ before.T, atol=1e-12)
+        np.testing.assert_array_equal(task, before)

@@ -1224,9 +1224,10 @@ def _transposed_q_times(factorization, vector):
 @numba.njit(cache=True, fastmath=REORDERING)
 def _transposed_q_rows(factorization, matrix):
     """Q^T matrix^T (n x rows) for a _pivoted_qr factorization: each reflection a rank-one
-    update over contiguous rows."""
+    update over contiguous rows, on a copy (NumPy's ascontiguousarray would hand back a
+    one-row matrix's own memory)."""
     reflectors, scales = factorization[0], factorization[1]
-    result = np.ascontiguousarray(matrix.T)
+    result = matrix.T.copy()
     combination = np.empty(result.shape[1])
     for j in range(len(scales)):
         reflector = reflectors[j]

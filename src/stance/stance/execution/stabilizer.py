@@ -36,11 +36,12 @@ import numpy as np
 import pinocchio as pin
 
 from ..limits import cubic_step
-
-# The plain Python smoothstep: a first JIT call would stall a publishing loop (~0.2 s).
-_smoothstep = cubic_step.py_func
 from ..planning.equilibrium import are_coplanar
 from ..planning.scene import ContactSpot, Surface
+
+# The plain Python smoothstep: a first JIT call would stall a publishing loop (~0.2 s).
+# (cubic_step is that function already where NUMBA_DISABLE_JIT is set.)
+_smoothstep = getattr(cubic_step, "py_func", cubic_step)
 
 START, END = "start", "end"        # which end of the transition into a stance a switch is at
 # Transition.reached: not known yet (an END switch waits), or the planned end is trusted
