@@ -351,14 +351,14 @@ class PIKSolver:
         tasks' (QPHierarchy's Inequalities), None without any."""
         iterations = 0
         options = {} if inequalities is None else {"inequalities": inequalities}
+        if bounds is not None:          # hot starts kept per fixed and damped joints (the
+            options["kept_key"] = fixed  # array the limit passes below fill in place)
         while True:
             equal, solve_bounds = fixed, bounds
-            if bounds is not None:     # damped joints bounded, not fixed (_damping_bounds);
-                #                        hot starts kept per fixed and damped joints
+            if bounds is not None:     # damped joints bounded, not fixed (_damping_bounds)
                 equal, lower, upper = _damping_bounds(fixed, fixed_dq, h, self.limits.v_index,
                                                       *bounds)
                 solve_bounds = (lower, upper)
-                options["kept_key"] = fixed
             index = equal.nonzero()[0]
             restart = {} if getattr(solution, "restart", None) is None else \
                 {"previous": solution}  # re-solve only the levels the new fixes touch

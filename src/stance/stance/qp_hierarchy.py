@@ -923,8 +923,8 @@ def _polish(projected, residual, damping, rows, low, high, active, upper_side, s
         if solves == 1:             # the kept set's multipliers are not all right: its step
             #                         may be a degenerate vertex all the same, or y = 0
             #                         (always feasible) may be the optimum
-            for trial, trial_rank in ((step, rank), (np.zeros_like(step), 0)):
-                reach = rows @ trial
+            for trial, reach, trial_rank in ((step, rows @ step, rank),
+                                             (np.zeros_like(step), np.zeros(len(low)), 0)):
                 if not _within_bounds(reach, low, high):
                     continue
                 certified, on, on_upper = _certifying_tight_rows(
