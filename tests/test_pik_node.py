@@ -624,8 +624,11 @@ def test_a_non_finite_step_is_discarded_and_reported():
             return result
 
         node.solver.step = nan_step
+        forgotten, forget = [], node.solver.forget_starts
+        node.solver.forget_starts = lambda: forgotten.append(forget())
         node._tick()
         node._tick()
+        assert len(forgotten) == 2      # a discarded step's starts are not the next one's
         assert np.array_equal(node.q, q_before)
         for joint_state in published["joints"][1:]:
             assert joint_state.position == published["joints"][0].position

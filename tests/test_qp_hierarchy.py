@@ -494,6 +494,26 @@ def test_talos_repeated_steps_are_reproducible(talos):
     assert np.array_equal(results[0].dq, results[1].dq)
 
 
+def test_a_solver_that_forgot_its_starts_steps_as_a_fresh_one(talos):
+    """After forget_starts (a step its caller discarded), the next step hot-starts only
+    from the sets its own solutions leave, as a fresh solver's step does, and is that
+    step bit for bit, where the steps before it left active sets."""
+    start = bench_start(talos)
+    used, fresh = four_level_qp_contender(talos, start), four_level_qp_contender(talos, start)
+    q = start
+    for _ in range(20):
+        q, _ = used.step(q)
+    hierarchy = used.solver.hierarchy
+    assert hierarchy.hot_starts > 0             # the steps so far left starts to reuse
+    used.solver.forget_starts()
+    hot_starts, fresh_hot_starts = hierarchy.hot_starts, fresh.solver.hierarchy.hot_starts
+    expected, result = fresh.solver.step(q), used.solver.step(q)
+    assert hierarchy.hot_starts - hot_starts == \
+        fresh.solver.hierarchy.hot_starts - fresh_hot_starts
+    assert np.array_equal(result.dq, expected.dq)
+    assert result.binding_constraints == expected.binding_constraints
+
+
 def four_level_qp_contender(robot, start):
     """The issue's stack (feet > CoM > both hands > posture) on the QP hierarchy, both
     hands reaching into the torso's and wrists' limits (stance bench levels)."""

@@ -334,7 +334,9 @@ class PikNode(Node):
 
     def _discard_step(self):
         """An IK step gave a non-finite configuration: the node keeps (and publishes) the
-        previous one, counts the step as a rejection and logs the first of a streak."""
+        previous one, the solver forgets the starts the step left, the step counts as a
+        rejection and the first of a streak is logged."""
+        self.solver.forget_starts()
         self.discarded_steps += 1
         self.rejected_inputs += 1
         self.last_rejection = (f"IK step {self.cycles + 1} gave a non-finite configuration: "

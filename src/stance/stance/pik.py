@@ -433,6 +433,14 @@ class PIKSolver:
             model.warm_up(q)
         if hasattr(self.hierarchy, "warm_up"):   # QPHierarchy: kernels of binding bounds
             self.hierarchy.warm_up()
+        self.forget_starts()                     # the first real step starts afresh
+
+    def forget_starts(self) -> None:
+        """Drop what steps taken so far left to start the next one from (QPHierarchy's
+        kept active sets and QPs): the next step is a fresh solver's, bit for bit. For a
+        step the caller discarded, and after warm_up's."""
+        if hasattr(self.hierarchy, "forget_starts"):
+            self.hierarchy.forget_starts()
 
     def levels(self) -> list:
         """(priority, task names) of each level with enabled tasks, highest first."""

@@ -399,6 +399,13 @@ class QPHierarchy:
             scratch.solve(levels, 2, fixed_index=np.zeros(0, dtype=np.int64),
                           fixed_dq=np.zeros(0), bounds=bounds)
 
+    def forget_starts(self) -> None:
+        """Drop the kept active sets and ProxSuite's QPs: the next solves start as a fresh
+        hierarchy's (after a step the caller discarded, whose starts it must not inherit)."""
+        self._qps.clear()
+        self._cascade_state = empty_cascade_state(0, 0, self._counters)
+        self._row_kept = None
+
     @property
     def hot_starts(self) -> int:
         """Levels whose bounds crossed, solved from the level's previous active set."""
