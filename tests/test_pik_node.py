@@ -641,6 +641,7 @@ def test_a_non_finite_step_is_discarded_and_reported():
         node.solver.step = real_step
         node._tick()
         assert node.discarded_steps == 0 and node.cycles == 4
+        assert len(forgotten) == 2      # a kept step forgets nothing
         assert np.isfinite(node.q).all()
 
 

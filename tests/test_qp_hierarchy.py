@@ -495,21 +495,25 @@ def test_talos_repeated_steps_are_reproducible(talos):
 
 
 def test_a_solver_that_forgot_its_starts_steps_as_a_fresh_one(talos):
-    """After forget_starts (a step its caller discarded), the next step hot-starts only
-    from the sets its own solutions leave, as a fresh solver's step does, and is that
-    step bit for bit, where the steps before it left active sets."""
+    """After forget_starts (a step its caller discarded), the next step, whose bounds
+    cross, starts from no active set and no ProxSuite QP kept before: it takes a fresh
+    solver's hot starts, ProxSuite solves and cold starts, and its step bit for bit."""
     start = bench_start(talos)
     used, fresh = four_level_qp_contender(talos, start), four_level_qp_contender(talos, start)
     q = start
     for _ in range(20):
         q, _ = used.step(q)
-    hierarchy = used.solver.hierarchy
-    assert hierarchy.hot_starts > 0             # the steps so far left starts to reuse
+    assert used.solver.hierarchy.hot_starts > 0     # the steps so far left starts to reuse
     used.solver.forget_starts()
-    hot_starts, fresh_hot_starts = hierarchy.hot_starts, fresh.solver.hierarchy.hot_starts
+
+    def counts(hierarchy):
+        return np.array([hierarchy.hot_starts, hierarchy.qp_solves, hierarchy.cold_starts])
+
+    before = [counts(used.solver.hierarchy), counts(fresh.solver.hierarchy)]
     expected, result = fresh.solver.step(q), used.solver.step(q)
-    assert hierarchy.hot_starts - hot_starts == \
-        fresh.solver.hierarchy.hot_starts - fresh_hot_starts
+    spent = counts(fresh.solver.hierarchy) - before[1]
+    assert spent[:2].sum() > 0                       # a level's bounds crossed
+    np.testing.assert_array_equal(counts(used.solver.hierarchy) - before[0], spent)
     assert np.array_equal(result.dq, expected.dq)
     assert result.binding_constraints == expected.binding_constraints
 

@@ -334,7 +334,7 @@ class PikNode(Node):
 
     def _discard_step(self):
         """An IK step gave a non-finite configuration: the node keeps (and publishes) the
-        previous one, the solver forgets the starts the step left, the step counts as a
+        previous one, the solver forgets every kept start, the step counts as a
         rejection and the first of a streak is logged."""
         self.solver.forget_starts()
         self.discarded_steps += 1

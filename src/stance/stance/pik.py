@@ -437,8 +437,8 @@ class PIKSolver:
 
     def forget_starts(self) -> None:
         """Drop what steps taken so far left to start the next one from (QPHierarchy's
-        kept active sets and QPs): the next step is a fresh solver's, bit for bit. For a
-        step the caller discarded, and after warm_up's."""
+        kept active sets and QPs; its counters go on): the next step is a fresh solver's,
+        bit for bit. For a step the caller discarded, and after warm_up's."""
         if hasattr(self.hierarchy, "forget_starts"):
             self.hierarchy.forget_starts()
 

@@ -400,10 +400,13 @@ class QPHierarchy:
                           fixed_dq=np.zeros(0), bounds=bounds)
 
     def forget_starts(self) -> None:
-        """Drop the kept active sets and ProxSuite's QPs: the next solves start as a fresh
-        hierarchy's (after a step the caller discarded, whose starts it must not inherit)."""
+        """Drop every kept start (the active sets of every key, the row cascade's, and
+        ProxSuite's QPs): the next solves start as a fresh hierarchy's, e.g. after a step
+        the caller discarded. The counters go on counting."""
         self._qps.clear()
         self._cascade_state = empty_cascade_state(0, 0, self._counters)
+        self._active_sides = np.zeros((0, 0), dtype=np.int8)
+        self._known_sides = np.zeros(0, dtype=np.bool_)
         self._row_kept = None
 
     @property
@@ -1231,8 +1234,8 @@ def _transposed_q_times(factorization, vector):
 @numba.njit(cache=True, fastmath=REORDERING)
 def _transposed_q_rows(factorization, matrix):
     """Q^T matrix^T (n x rows) for a _pivoted_qr factorization: each reflection a rank-one
-    update over contiguous rows, on a copy (NumPy's ascontiguousarray would hand back a
-    one-row matrix's own memory)."""
+    update over contiguous rows, on a copy (ascontiguousarray returns the caller's memory
+    where matrix.T is C-contiguous already: a one-row or a Fortran-ordered matrix)."""
     reflectors, scales = factorization[0], factorization[1]
     result = matrix.T.copy()
     combination = np.empty(result.shape[1])

@@ -172,7 +172,8 @@ class StanceContender:
             self.solver.task(spec.name).target = targets[spec.name]
 
     def reset(self, q) -> None:
-        """Stateless between steps: nothing to do."""
+        """Each race starts as a fresh solver: no active set kept from an earlier race."""
+        self.solver.forget_starts()
 
     def step(self, q):
         result = self.solver.step(q)
