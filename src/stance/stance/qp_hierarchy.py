@@ -208,11 +208,8 @@ class QPHierarchy:
         self.qp_iterations = 0    # ProxSuite's inner iterations, warm and cold solves
         self._counters = np.zeros(2, dtype=np.int64)  # [hot starts, polish solves], filled
         #                                               when compiled
-        self._cascade_state = empty_cascade_state(0, 0, self._counters)
-        self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
-        self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of the kept sets
         self._bound_labels = []   # "<dof> lower|upper|velocity", 3 per DoF (_binding_codes)
-        self._row_kept = None     # KeptActiveSets of the row cascade (_kept_row_sets)
+        self.forget_starts()      # no kept start yet
 
     @classmethod
     def for_robot(cls, robot, dt: float | None = None, **options) -> QPHierarchy:
@@ -405,9 +402,9 @@ class QPHierarchy:
         the caller discarded. The counters go on counting."""
         self._qps.clear()
         self._cascade_state = empty_cascade_state(0, 0, self._counters)
-        self._active_sides = np.zeros((0, 0), dtype=np.int8)
-        self._known_sides = np.zeros(0, dtype=np.bool_)
-        self._row_kept = None
+        self._active_sides = np.zeros((0, 0), dtype=np.int8)  # levels x nv: the cascade's
+        self._known_sides = np.zeros(0, dtype=np.bool_)       # slot of the kept sets
+        self._row_kept = None     # KeptActiveSets of the row cascade (_kept_row_sets)
 
     @property
     def hot_starts(self) -> int:
