@@ -586,12 +586,13 @@ def test_bad_runtime_strategy_is_refused_and_the_old_one_kept(pik):
 
 
 @contextlib.contextmanager
-def local_pik_node():
-    """An in-process pik_node (default robot, its loop not started) in another domain."""
+def local_pik_node(**node_options):
+    """An in-process pik_node (default robot, its loop not started) in another domain;
+    node_options: rclpy Node's (parameter_overrides...)."""
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=other_domain_id())
     try:
-        node = PikNode(context=context)
+        node = PikNode(context=context, **node_options)
         try:
             yield node
         finally:
@@ -665,6 +666,57 @@ def test_a_configuration_with_non_finite_kinematics_is_refused(monkeypatch):
         for name, target in targets.items():
             after = node.solver.task_poses(name)[0]
             assert (after is None and target is None) or after.isApprox(target, 0.0), name
+
+
+def test_a_jump_steps_as_a_fresh_node_from_there():
+    """/pik/set_configuration forgets the solver's kept starts (the QP hierarchy's active
+    sets): after a jump, a node that ran steps before steps as a fresh node jumping to the
+    same configuration, bit for bit and with the same hot starts, so an execution replays
+    the same; a refused request forgets nothing."""
+    from rclpy.parameter import Parameter
+    from stance_msgs.srv import SetConfiguration
+    counters = ("hot_starts", "polish_solves", "qp_solves", "cold_starts")
+
+    def reach_out(node):    # the right hand out of reach: arm joints on their limits
+        hand = node.solver.task("right_hand")
+        target = hand.target.copy()
+        target.translation += np.array([0.3, -0.3, 0.3])
+        hand.target = target
+
+    def solver_counts(node):
+        return np.array([getattr(node.solver.hierarchy, name) for name in counters])
+
+    qp = [Parameter("hierarchy", value="qp")]
+    with local_pik_node(parameter_overrides=qp) as used, \
+            local_pik_node(parameter_overrides=qp) as fresh:
+        for node in (used, fresh):
+            node.joint_state_pub.publish = node.status_pub.publish = lambda msg: None
+        reach_out(used)
+        for _ in range(300):
+            used._tick()
+        forgotten, forget = [], used.solver.forget_starts
+        used.solver.forget_starts = lambda: forgotten.append(forget())
+        request = SetConfiguration.Request()
+        fill_pose_msg(request.base_pose, fresh.q[:7])
+        positions = fresh.robot.actuated_positions(fresh.q)
+        request.joints.name = list(positions)
+        request.joints.position = [math.nan] + list(positions.values())[1:]
+        assert not used._on_set_configuration(request, SetConfiguration.Response()).success
+        assert forgotten == []
+        request.joints.position = list(positions.values())
+        before = {}
+        for node in (used, fresh):
+            assert node._on_set_configuration(request, SetConfiguration.Response()).success
+            reach_out(node)
+            before[node] = solver_counts(node)
+        assert len(forgotten) == 1
+        for _ in range(300):
+            used._tick()
+            fresh._tick()
+            assert np.array_equal(used.q, fresh.q)
+        assert (solver_counts(fresh) - before[fresh])[0] > 100   # the hot starts at work
+        assert np.array_equal(solver_counts(used) - before[used],
+                              solver_counts(fresh) - before[fresh])
 
 
 def test_a_megabyte_name_comes_back_cut(pik_node_in_process):

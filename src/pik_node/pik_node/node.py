@@ -302,7 +302,8 @@ class PikNode(Node):
     def _on_set_configuration(self, request, response):
         """Jump to the requested configuration and hold every task's value there (its
         target becomes its current value), all under the lock: one IK step sees either
-        the old state or the new one."""
+        the old state or the new one. The solver forgets its kept starts: the next step is
+        a fresh solver's from there, so an execution replays the same whatever ran before."""
         try:
             with self._lock:
                 q = configuration_from_msg(self.robot, self.q, request.base_pose,
@@ -312,6 +313,7 @@ class PikNode(Node):
                     raise TargetError("the configuration or its centre of mass is not finite")
                 for task in self.solver.tasks.values():
                     task.hold(self.robot, q)
+                self.solver.forget_starts()
                 self.q = q
         except TargetError as error:
             response.success, response.message = False, f"configuration rejected: {error}"
