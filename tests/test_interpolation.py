@@ -12,8 +12,8 @@ import pinocchio as pin
 import pytest
 
 from stance.execution.interpolation import (DETOUR_LINE_TOLERANCE, SAMPLE_CONTACT_TOLERANCE,
-                                            InterpolationError, SpotPath, TransitionPlanner,
-                                            spot_pose)
+                                            InterpolationError, InterpolationStopped, SpotPath,
+                                            TransitionPlanner, spot_pose)
 from stance.planning.collision import CollisionModel
 from stance.planning.contacts import Contact, Plan, Stance, load_plan
 from stance.planning.planner import PlanRequest, plan_contacts
@@ -191,6 +191,15 @@ def test_unreachable_sample_names_transition_and_sample(flat):
         planner.transition(7, first, Stance(moved, away))
     assert failure.value.transition == 7 and 1 <= failure.value.sample < planner.steps
     assert "transition 7 -> 8" in str(failure.value) and failure.value.reason
+
+
+def test_an_interpolation_stops_when_asked_before_a_sample(flat):
+    """should_stop is asked before each sample: the first True abandons the plan."""
+    _, _, plan, planner, _ = flat
+    asked = []
+    with pytest.raises(InterpolationStopped, match="transition 0 -> 1, sample 4/10"):
+        planner.interpolate(plan, should_stop=lambda: asked.append(True) or len(asked) > 3)
+    assert len(asked) == 4
 
 
 def test_plans_without_a_transition_or_with_a_witness_not_finite_are_refused(flat):

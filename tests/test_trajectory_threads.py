@@ -68,8 +68,20 @@ class StubPlanner:
     def __init__(self, *args, **kwargs):
         pass
 
-    def interpolate(self, plan):
+    def interpolate(self, plan, should_stop=None):
         return None
+
+
+class EndlessPlanner(StubPlanner):
+    """An interpolation that only ends when asked to stop."""
+
+    asked = 0
+
+    def interpolate(self, plan, should_stop=None):
+        while not should_stop():
+            EndlessPlanner.asked += 1
+            time.sleep(0.01)
+        raise trajectory.InterpolationStopped("stopped")
 
 
 @pytest.fixture
@@ -154,3 +166,19 @@ def test_plans_in_a_row_each_execute_once(stubbed):
             wait_until(lambda name=name: name in script.executed, 10, what=f"{name} executed")
         wait_until(script.idle, 5, what="idle")
         assert script.executed == ["A", "B", "C"]
+
+
+def test_stopping_the_node_ends_an_interpolation_under_way(stubbed, monkeypatch):
+    """The preparer asks to stop between samples: stop_worker ends it at once, with no
+    status (it used to interpolate the whole plan in a daemon thread after the node
+    stopped)."""
+    monkeypatch.setattr(trajectory, "TransitionPlanner", EndlessPlanner)
+    with stubbed({"A": 0.0}) as script:
+        script.arrive("A")
+        wait_until(lambda: EndlessPlanner.asked > 3, 5, what="the interpolation under way")
+        statuses = len(script.statuses)
+        began = time.monotonic()
+        script.node.stop_worker()
+        assert time.monotonic() - began < 1.0
+        assert not any(worker.is_alive() for worker in script.node._workers)
+        assert len(script.statuses) == statuses and script.executed == []

@@ -73,6 +73,7 @@ holds its last targets. A plan stamped before the node started (the latched last
 found at start-up) is not executed unless `execute_latched_plan` is true: a node restarted
 by `stance graph` must not replay the last plan from its first witness; the status says so.
 A plan equal to the last one received (header stamp included) is ignored.
+At shutdown an interpolation under way stops before its next sample, with no status.
 
 Topics and services (QoS in parentheses):
   sub  /contact_planner/plan         stance_msgs/StancePlan (reliable, transient local)
@@ -119,7 +120,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import (InterpolatedPlan, InterpolationError,
-                                           TransitionPlanner)
+                                           InterpolationStopped, TransitionPlanner)
 from stance.execution.timing import (Trajectory, sinusoidal_trajectory,
                                      time_optimal_trajectory)
 from stance.execution.tracking import (ARRIVAL_COM_TOLERANCE, ARRIVAL_TIMEOUT,
@@ -464,10 +465,12 @@ class TrajectoryNode(Node):
             _require_verified(plan, scene, self.robot)
             planner = TransitionPlanner(self.robot, scene, CollisionModel(self.robot, scene),
                                         steps=self.steps)
-            path = planner.interpolate(plan)
+            path = planner.interpolate(plan, should_stop=self._stop.is_set)
             trajectory = self._time(path)
         except (ValueError, InterpolationError) as error:
             self._reject_plan(error, preparing_goes_on=False)
+            return None
+        except InterpolationStopped:    # the node stops: nothing to say
             return None
         return Prepared(msg, plan, scene, planner, path, trajectory)
 

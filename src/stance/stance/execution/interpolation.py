@@ -72,6 +72,10 @@ class InterpolationError(RuntimeError):
         self.transition, self.sample, self.reason = transition, sample, reason
 
 
+class InterpolationStopped(Exception):
+    """The caller's should_stop() answered True: the interpolation was abandoned."""
+
+
 @dataclass(frozen=True, eq=False)
 class SpotPose:
     """A spot held at a world pose: a geometric contact for PostureGenerator (it reads
@@ -255,10 +259,12 @@ class TransitionPlanner:
             return None
         return self.scene.surfaces[contact.surface].pose.rotation[:, 2].copy()
 
-    def transition(self, index: int, first, second):
+    def transition(self, index: int, first, second, should_stop=None):
         """(interior samples (n - 1, nq), statistics dict) from stance `first` to `second`;
         raises InterpolationError when a sample fails on the path and on its detour, even
-        when approached through SUBDIVISIONS levels of halved steps.
+        when approached through SUBDIVISIONS levels of halved steps, and
+        InterpolationStopped when should_stop (a callable, asked before each sample)
+        answers True.
 
         From the first sample the path blocks (collisions, stability or joint limits), the
         transition takes a detour: the spline is then a guide only (any distance from it)
@@ -276,6 +282,9 @@ class TransitionPlanner:
         sampler = _Sampler(self, first, second, common, paths, position_only)
         q, previous, samples = first.q, first.q, []
         for k in range(1, steps):
+            if should_stop is not None and should_stop():
+                raise InterpolationStopped(f"stopped at transition {index} -> {index + 1}, "
+                                           f"sample {k}/{steps}")
             # warm start: the previous sample moved on by the last sample's step
             guess = pin.integrate(model, q, pin.difference(model, previous, q))
             result = sampler.reach((k - 1) / steps, q, k / steps, guess, SUBDIVISIONS)
@@ -328,10 +337,11 @@ class TransitionPlanner:
             return after.surface
         return None
 
-    def interpolate(self, plan) -> InterpolatedPlan:
+    def interpolate(self, plan, should_stop=None) -> InterpolatedPlan:
         """The whole plan as one sampled path (raises InterpolationError on a failure;
         ValueError for fewer than two stances, a witness that is not nq finite values or a
-        contact off the scene: scene.placement_problem)."""
+        contact off the scene: scene.placement_problem; InterpolationStopped once
+        should_stop, a callable asked before each sample, answers True)."""
         stances = plan.stances
         if len(stances) < 2:
             raise ValueError(f"a plan of {len(stances)} stance(s) has no transition to "
@@ -346,7 +356,7 @@ class TransitionPlanner:
                 if problem:
                     raise ValueError(f"stance {index}: contacts[{k}]{problem[0]}: "
                                      f"{problem[1]}")
-        results = [self.transition(index, first, second)
+        results = [self.transition(index, first, second, should_stop)
                    for index, (first, second) in enumerate(zip(stances[:-1], stances[1:]))]
         return assemble(stances, self.steps, results)
 
