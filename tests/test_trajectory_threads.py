@@ -73,13 +73,13 @@ class StubPlanner:
 
 
 class EndlessPlanner(StubPlanner):
-    """An interpolation that only ends when asked to stop."""
+    """An interpolation that only ends when asked to stop; `asking` is set once it asks."""
 
-    asked = 0
+    asking = threading.Event()
 
     def interpolate(self, plan, should_stop=None):
         while not should_stop():
-            EndlessPlanner.asked += 1
+            self.asking.set()
             time.sleep(0.01)
         raise trajectory.InterpolationStopped("stopped")
 
@@ -170,15 +170,17 @@ def test_plans_in_a_row_each_execute_once(stubbed):
 
 def test_stopping_the_node_ends_an_interpolation_under_way(stubbed, monkeypatch):
     """The preparer asks to stop between samples: stop_worker ends it at once, with no
-    status (it used to interpolate the whole plan in a daemon thread after the node
-    stopped)."""
+    status, the preparer idle (it used to interpolate the whole plan in a daemon thread
+    after the node stopped)."""
     monkeypatch.setattr(trajectory, "TransitionPlanner", EndlessPlanner)
+    monkeypatch.setattr(EndlessPlanner, "asking", threading.Event())
     with stubbed({"A": 0.0}) as script:
         script.arrive("A")
-        wait_until(lambda: EndlessPlanner.asked > 3, 5, what="the interpolation under way")
+        wait_until(EndlessPlanner.asking.is_set, 5, what="the interpolation under way")
         statuses = len(script.statuses)
         began = time.monotonic()
         script.node.stop_worker()
         assert time.monotonic() - began < 1.0
         assert not any(worker.is_alive() for worker in script.node._workers)
         assert len(script.statuses) == statuses and script.executed == []
+        assert script.idle()

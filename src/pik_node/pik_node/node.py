@@ -21,7 +21,8 @@ Topics and services (QoS in parentheses; the per-step outputs keep 1000 samples,
   srv  /pik/set_task_enabled      stance_msgs/SetTaskEnabled (same warning)
   srv  /pik/set_configuration     stance_msgs/SetConfiguration: jump to a configuration
                                   (base pose, joints inside their limits); every task
-                                  then holds its value there
+                                  then holds its value there, and the solver steps on
+                                  as a fresh one (no kept QP start)
 Positions (targets, base pose) are bounded by conversions.MAX_POSITION (1e6 m); no state
 that is not finite is committed (an IK step that gives one is discarded and reported).
 The strategy parameter can be set at run time (`stance param set /pik_node strategy
@@ -303,7 +304,7 @@ class PikNode(Node):
         """Jump to the requested configuration and hold every task's value there (its
         target becomes its current value), all under the lock: one IK step sees either
         the old state or the new one. The solver forgets its kept starts: the next step is
-        a fresh solver's from there, so an execution replays the same whatever ran before."""
+        a fresh solver's from there."""
         try:
             with self._lock:
                 q = configuration_from_msg(self.robot, self.q, request.base_pose,

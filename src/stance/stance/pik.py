@@ -438,7 +438,8 @@ class PIKSolver:
     def forget_starts(self) -> None:
         """Drop what steps taken so far left to start the next one from (QPHierarchy's
         kept active sets and QPs; its counters go on): the next step is a fresh solver's,
-        bit for bit. For a step the caller discarded, and after warm_up's."""
+        bit for bit. For a step the caller discarded, after warm_up's, and at a jump to
+        another configuration."""
         if hasattr(self.hierarchy, "forget_starts"):
             self.hierarchy.forget_starts()
 
