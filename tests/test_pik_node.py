@@ -15,7 +15,8 @@ from geometry_msgs.msg import Point32, PolygonStamped, Pose
 from pik_node.conversions import se3_from_pose_msg
 from pik_node.node import PikNode, fill_pose_msg
 from stance_tools.processes import ProcessGroup
-from helpers.probe import PikProbe, point_target, pose_target, task_status
+from helpers.probe import (PikProbe, configuration_request, point_target, pose_target,
+                           task_status)
 import rclpy
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
@@ -696,14 +697,12 @@ def test_a_jump_steps_as_a_fresh_node_from_there():
             used._tick()
         forgotten, forget = [], used.solver.forget_starts
         used.solver.forget_starts = lambda: forgotten.append(forget())
-        request = SetConfiguration.Request()
-        fill_pose_msg(request.base_pose, fresh.q[:7])
-        positions = fresh.robot.actuated_positions(fresh.q)
-        request.joints.name = list(positions)
-        request.joints.position = [math.nan] + list(positions.values())[1:]
+        request = configuration_request(fresh.robot, fresh.q)
+        position = request.joints.position[0]
+        request.joints.position[0] = math.nan
         assert not used._on_set_configuration(request, SetConfiguration.Response()).success
         assert forgotten == []
-        request.joints.position = list(positions.values())
+        request.joints.position[0] = position
         before = {}
         for node in (used, fresh):
             assert node._on_set_configuration(request, SetConfiguration.Response()).success

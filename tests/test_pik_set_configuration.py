@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 from conftest import NODE_START_TIMEOUT, wait_until
-from helpers.probe import PikProbe, task_status
-from pik_node.node import fill_pose_msg
+from helpers.probe import PikProbe, configuration_request, task_status
 from stance import Robot
 from stance_msgs.srv import SetConfiguration
 from stance_tools.processes import ProcessGroup
@@ -47,15 +46,6 @@ def settled(probe):
     return probe.latest_joint_state(), probe.latest_status()
 
 
-def request_for(robot, q, joints=None):
-    request = SetConfiguration.Request()
-    fill_pose_msg(request.base_pose, q[:7])
-    positions = joints if joints is not None else robot.actuated_positions(q)
-    request.joints.name = list(positions)
-    request.joints.position = [float(v) for v in positions.values()]
-    return request
-
-
 def test_good_request_moves_the_robot_and_every_task_holds_there(pik, robot):
     node, probe, client = pik
     _, before = settled(probe)
@@ -65,7 +55,7 @@ def test_good_request_moves_the_robot_and_every_task_holds_there(pik, robot):
                     for bound in (robot.lower, robot.upper))
     arm_value = 0.5 * (lower + upper) + 0.1
     q[robot.model.joints[robot.joint_id(ARM)].idx_q] = arm_value
-    response = probe.call(client, request_for(robot, q))
+    response = probe.call(client, configuration_request(robot, q))
     assert response.success, response.message
 
     joint_state, status = settled(probe)
@@ -92,7 +82,7 @@ def test_bad_request_is_rejected_with_its_reason_and_changes_nothing(pik, robot,
     node, probe, client = pik
     joint_state, status = settled(probe)
     q = robot.initial_configuration()
-    request = request_for(robot, q)
+    request = configuration_request(robot, q)
     index = list(request.joints.name).index(ARM)
     if case == "nan joint":
         request.joints.position[index] = float("nan")

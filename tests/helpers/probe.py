@@ -7,10 +7,11 @@ import threading
 import time
 
 from geometry_msgs.msg import PointStamped, PoseStamped
+from pik_node.node import fill_pose_msg
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance_msgs.msg import SolverStatus
-from stance_msgs.srv import SetStack, SetTaskEnabled
+from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 from stance_tools.background_node import BackgroundNode
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -97,3 +98,14 @@ def point_target(x, y, z, frame_id="world"):
     msg.header.frame_id = frame_id
     msg.point.x, msg.point.y, msg.point.z = x, y, z
     return msg
+
+
+def configuration_request(robot, q, joints=None):
+    """/pik/set_configuration request: base pose from q, the joints named in `joints`
+    ({name: rad}) or else every actuated joint at its value in q."""
+    request = SetConfiguration.Request()
+    fill_pose_msg(request.base_pose, q[:7])
+    positions = joints if joints is not None else robot.actuated_positions(q)
+    request.joints.name = list(positions)
+    request.joints.position = [float(v) for v in positions.values()]
+    return request
