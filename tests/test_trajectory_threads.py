@@ -1,8 +1,8 @@
 """trajectory_node's preparer and executor threads, in process (another DDS domain), with
 verification, interpolation and execution stubbed: which plans execute, how often, and
 what the status says when a newer plan is rejected, in sequences the DDS tests cannot time
-(a plan held ready while a newer one is prepared, a rejection after the plan under way
-ended)."""
+(a plan held ready while a newer one is prepared, plans arriving faster than they are
+prepared, a rejection after the plan under way ended)."""
 
 import contextlib
 import threading
@@ -24,13 +24,14 @@ class Script:
 
     def __init__(self, node, prepare_time, execute_time):
         self.node, self.prepare_time, self.execute_time = node, prepare_time, execute_time
-        self.executed, self.statuses = [], []
+        self.executed, self.statuses, self.verified = [], [], []
         self.verifying = threading.Event()
         node.status_pub.publish = lambda msg: self.statuses.append(msg.data)
         node._execute = self.execute
         node._time = lambda path: None
 
     def verify(self, plan, scene, robot):
+        self.verified.append(plan)
         self.verifying.set()
         time.sleep(self.prepare_time[plan])
         if plan.startswith("bad"):
@@ -130,6 +131,22 @@ def test_a_newer_plan_ready_replaces_the_one_held(stubbed):
         assert any(s.startswith("interpolating: a newer plan of 0 stances on scene 'B', n = "
                                 "20 is being prepared") for s in script.statuses), \
             script.statuses
+
+
+def test_plans_sent_faster_than_prepared_still_execute(stubbed):
+    """A to E each arrive while the one before is verified. A ready plan waits for one
+    newer preparation at most: B (which replaced A) executes while plans still arrive, then
+    D (which replaced C), then E (the newest used to wait for the stream to end: only E
+    executed, after all five preparations)."""
+    with stubbed({name: 0.3 for name in "ABCDE"}, execute_time=0.3) as script:
+        script.arrive("A")
+        for previous, name in zip("ABCD", "BCDE"):
+            wait_until(lambda previous=previous: previous in script.verified, 5,
+                       what=f"{previous} verified")
+            script.arrive(name)
+        assert "executing: plan B" in script.statuses, script.statuses
+        wait_until(lambda: "E" in script.executed and script.idle(), 10, what="E executed")
+        assert script.executed == ["B", "D", "E"]
 
 
 def test_a_rejection_after_the_plan_under_way_ended_says_failed(stubbed):

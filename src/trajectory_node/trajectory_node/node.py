@@ -65,9 +65,11 @@ witness: every stance boundary is a contact event), then the new plan starts fro
 first witness (a jump if it does not start there); if the plan under way ends first, the
 new one starts when ready. Its statuses meanwhile keep the state of the plan under way
 (`executing: a newer plan ... is being prepared ...`). A plan arriving while another is
-prepared replaces it if it is ready in turn. A plan that cannot be converted, verified,
-interpolated or executed is reported and never supersedes a plan under way or ready, which
-goes on even though a newer one was sent (the status says so, with the rejection); with
+prepared replaces it if it is ready in turn; a ready plan waits for one such preparation
+at most (then the newest ready one is handed over), so plans sent faster than they are
+prepared still execute. A plan that cannot be converted, verified, interpolated or
+executed is reported and never supersedes a plan under way or ready, which goes on even
+though a newer one was sent (the status says so, with the rejection); with
 none, the status says `failed` (and the log), the node waits for the next one and pik_node
 holds its last targets. A plan stamped before the node started (the latched last plan,
 found at start-up) is not executed unless `execute_latched_plan` is true: a node restarted
@@ -423,18 +425,25 @@ class TrajectoryNode(Node):
     def _prepare_plans(self):
         """Preparer: the newest arrival verified, interpolated and timed, then handed to the
         executor, unless a newer one arrived meanwhile: that one is prepared first, and
-        replaces it if it is ready in turn (a rejected one leaves it to go on)."""
+        replaces it if it is ready in turn (a rejected one leaves it to go on). The ready
+        plan waits for one preparation at most: if yet another plan arrived meanwhile, the
+        newest ready one is handed over first, so plans arriving faster than they are
+        prepared still execute (the newest ready one takes over at the end of a transition)
+        instead of waiting for the stream to end."""
+        held_through_a_preparation = False
         while not self._stop.is_set():
             with self._wakeup:
                 while self._arrival is None and self._ready is None and \
                         not self._stop.is_set():
                     self._wakeup.wait()
+                if self._ready is not None and (self._arrival is None or
+                                                held_through_a_preparation):
+                    self._pending, self._ready = self._ready, None
+                    self._wakeup.notify_all()
                 arrival, self._arrival = self._arrival, None
                 if arrival is None:
-                    if self._ready is not None:
-                        self._pending, self._ready = self._ready, None
-                        self._wakeup.notify_all()
                     continue
+                held_through_a_preparation = self._ready is not None
                 self._preparing = True
             try:
                 prepared = self._prepare(*arrival)
