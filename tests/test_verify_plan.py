@@ -223,7 +223,14 @@ def test_duplicate_spot_and_unknown_names_are_reported(verifier, good_plan):
                                                           q)]))
     assert any("spot 'left_foot' in 2 contacts" in failure for failure in twice.failures)
     unknown = verifier.verify(Plan("flat", "talos", [Stance((replace(left, surface="moon"),), q)]))
-    assert unknown.failures == ["stance 0: unknown surface 'moon'"]
+    assert unknown.failures == ["stance 0: left_foot@moon: unknown surface 'moon'"]
+
+
+def test_a_spot_on_a_frame_the_robot_lacks_is_reported(robot, standing, good_plan):
+    scene = make_scene(standing)
+    scene.spots["left_foot"] = replace(scene.spots["left_foot"], frame="no_such_link")
+    report = PlanVerifier(scene, robot).verify(replace(good_plan, stances=good_plan.stances[:1]))
+    assert report.failures == ["stance 0: spot 'left_foot': unknown frame 'no_such_link'"]
 
 
 @pytest.fixture

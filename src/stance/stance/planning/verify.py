@@ -236,16 +236,13 @@ class PlanVerifier:
         vertices = patch @ target.rotation[:, :2].T + target.translation
         return error, vertices, contact.contact_frame(surface).rotation
 
-    def _unknown_names(self, stance) -> list:
-        problems = []
-        for contact in stance.contacts:
-            if contact.spot not in self.scene.spots:
-                problems.append(f"unknown spot {contact.spot!r}")
-            elif not self.robot.model.existFrame(self.scene.spots[contact.spot].frame):
-                problems.append(f"spot {contact.spot!r}: unknown frame")
-            if contact.surface not in self.scene.surfaces:
-                problems.append(f"unknown surface {contact.surface!r}")
-        return problems
+    def _unknown_frames(self, stance) -> list:
+        """A failure per contact whose spot (known to the scene) names a frame the robot
+        lacks."""
+        frames = {contact.spot: self.scene.spots[contact.spot].frame
+                  for contact in stance.contacts}
+        return [f"spot {spot!r}: unknown frame {frame!r}" for spot, frame in frames.items()
+                if not self.robot.model.existFrame(frame)]
 
     def check_stance(self, index: int, stance, previous=None) -> StanceReport:
         report = StanceReport(index)
@@ -263,15 +260,15 @@ class PlanVerifier:
         if not np.isfinite(q).all():
             failures.append("configuration not finite")
             return report
-        unknown = self._unknown_names(stance)
-        if unknown:
-            failures += unknown
-            return report
         misplaced = [(contact, placement_problem(self.scene.surfaces, self.scene.spots,
                                                  contact)) for contact in stance.contacts]
         failures += [f"{_contact_name(contact)}: {problem[1]}"
                      for contact, problem in misplaced if problem]
         if any(problem for _, problem in misplaced):
+            return report
+        unknown = self._unknown_frames(stance)
+        if unknown:
+            failures += unknown
             return report
         spots = [contact.spot for contact in stance.contacts]
         failures += [f"spot {name!r} in {spots.count(name)} contacts"
