@@ -226,3 +226,47 @@ def test_mesh_obstacle_is_a_convex_hull(robot, scene):
     assert collision.self_pairs == 0 and len(collision.pairs) == 52
     distance, label = collision.min_distance(robot.reference_configurations["half_sitting"])
     assert np.isfinite(distance) and label.endswith("|rock")
+
+
+# A process's box distances, after its first box query: a convex hull against a box, 300
+# poses; the SHA-256 of the distances, normals and nearest points.
+BOX_DISTANCES = """
+import hashlib, sys
+import coal, numpy as np, pinocchio as pin
+{first}
+rng = np.random.default_rng(0)
+points = rng.normal(size=(200, 3))
+vertices = coal.StdVec_Vec3s()
+for point in points / np.linalg.norm(points, axis=1)[:, None] * [0.1, 0.05, 0.2]:
+    vertices.append(point)
+hull, box, digest = coal.Convex.convexHull(vertices, False, "Qt"), coal.Box(2, 2, 0.1), hashlib.sha256()
+for _ in range(300):
+    request, result = coal.DistanceRequest(), coal.DistanceResult()
+    placement = coal.Transform3s(pin.rpy.rpyToMatrix(*rng.uniform(-np.pi, np.pi, 3)),
+                                 rng.uniform(-0.1, 0.1, 3) + [0.0, 0.0, 0.3])
+    coal.distance(hull, placement, box, coal.Transform3s(), request, result)
+    digest.update(np.array([result.min_distance, *result.normal,
+                            *result.getNearestPoint1()]).tobytes())
+print(digest.hexdigest())
+"""
+AXIS_ALIGNED_BOX_QUERY = """
+coal.distance(coal.Box(1, 1, 1), coal.Transform3s(), coal.Box(1, 1, 1),
+              coal.Transform3s(np.eye(3), np.array([0.3, 0.2, 0.1])),
+              coal.DistanceRequest(), coal.DistanceResult())
+"""
+
+
+def box_distances(first: str) -> str:
+    import subprocess
+    import sys
+    return subprocess.run([sys.executable, "-c", BOX_DISTANCES.format(first=first)],
+                          capture_output=True, text=True, check=True).stdout
+
+
+def test_box_distances_do_not_depend_on_the_process_first_box_query():
+    """coal's box support function keeps a factor from the process's first box query
+    (coal issue #894): a hull's distances to a box took other last bits as their own first
+    box query than after one between axis-aligned boxes. Importing stance.planning makes
+    the first box query, so both processes compute the same bits."""
+    plain = box_distances("import stance.planning")
+    assert box_distances("import stance.planning\n" + AXIS_ALIGNED_BOX_QUERY) == plain

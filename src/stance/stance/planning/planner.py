@@ -259,9 +259,10 @@ class _Search:
         """With worker processes: generate the node's removal sons and each pair's first son
         at once, in parallel; `generate` then takes these results in its usual order.
         Call i goes to worker i mod workers, so every worker sees the same calls in every
-        run: the search amplifies rounding, and a posture still depends to rounding on
-        what its process computed before (README), so a schedule that depended on timing
-        would not give the same plan twice."""
+        run: the search amplifies rounding, and a schedule that depended on timing would
+        give the same plan twice only as long as a posture depends on its call alone (each
+        generation forgets its collision model's state, every process holds the same
+        coal state: coal_order)."""
         if not self.pool or self._must_stop():
             return
         calls = [(None, removed) for removed in removals] + [(free, None) for free in frees]
