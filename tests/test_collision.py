@@ -3,6 +3,8 @@ through pin.integrate, ignored contact pairs and the near-pair refresh policy (T
 
 import glob
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pinocchio as pin
@@ -231,7 +233,7 @@ def test_mesh_obstacle_is_a_convex_hull(robot, scene):
 # A process's box distances, after its first box query: a convex hull against a box, 300
 # poses; the SHA-256 of the distances, normals and nearest points.
 BOX_DISTANCES = """
-import hashlib, sys
+import hashlib
 import coal, numpy as np, pinocchio as pin
 {first}
 rng = np.random.default_rng(0)
@@ -239,7 +241,8 @@ points = rng.normal(size=(200, 3))
 vertices = coal.StdVec_Vec3s()
 for point in points / np.linalg.norm(points, axis=1)[:, None] * [0.1, 0.05, 0.2]:
     vertices.append(point)
-hull, box, digest = coal.Convex.convexHull(vertices, False, "Qt"), coal.Box(2, 2, 0.1), hashlib.sha256()
+hull, box = coal.Convex.convexHull(vertices, False, "Qt"), coal.Box(2, 2, 0.1)
+digest = hashlib.sha256()
 for _ in range(300):
     request, result = coal.DistanceRequest(), coal.DistanceResult()
     placement = coal.Transform3s(pin.rpy.rpyToMatrix(*rng.uniform(-np.pi, np.pi, 3)),
@@ -257,16 +260,16 @@ coal.distance(coal.Box(1, 1, 1), coal.Transform3s(), coal.Box(1, 1, 1),
 
 
 def box_distances(first: str) -> str:
-    import subprocess
-    import sys
+    """BOX_DISTANCES' digest, computed in a fresh Python process after `first`."""
     return subprocess.run([sys.executable, "-c", BOX_DISTANCES.format(first=first)],
                           capture_output=True, text=True, check=True).stdout
 
 
 def test_box_distances_do_not_depend_on_the_process_first_box_query():
     """coal's box support function keeps a factor from the process's first box query
-    (coal issue #894): a hull's distances to a box took other last bits as their own first
-    box query than after one between axis-aligned boxes. Importing stance.planning makes
-    the first box query, so both processes compute the same bits."""
+    (coal issue #894): a hull's distances to a box came out with other last bits when they
+    were the process's first box queries than after a query between axis-aligned boxes.
+    Importing stance.planning makes the first box query, so both processes compute the same
+    bits."""
     plain = box_distances("import stance.planning")
     assert box_distances("import stance.planning\n" + AXIS_ALIGNED_BOX_QUERY) == plain
