@@ -21,7 +21,7 @@ import rclpy
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance_msgs.msg import TaskSpec
-from stance_msgs.srv import SetStack, SetTaskEnabled
+from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
 
 DEMO_TASKS = ["left_foot", "right_foot", "com", "right_hand", "posture"]
 
@@ -652,13 +652,11 @@ def test_a_configuration_with_non_finite_kinematics_is_refused(monkeypatch):
     x = 1e308 passes the message checks but its centre of mass overflows; the request is
     refused and nothing changes."""
     from pik_node import conversions
-    from stance_msgs.srv import SetConfiguration
     monkeypatch.setattr(conversions, "MAX_POSITION", math.inf)
     with local_pik_node() as node:
         q_before = node.q.copy()
         targets = {name: node.solver.task_poses(name)[0] for name in node.solver.tasks}
-        request = SetConfiguration.Request()
-        fill_pose_msg(request.base_pose, q_before[:7])
+        request = configuration_request(node.robot, q_before, joints={})
         request.base_pose.position.x = 1e308
         response = node._on_set_configuration(request, SetConfiguration.Response())
         assert not response.success
@@ -675,7 +673,6 @@ def test_a_jump_steps_as_a_fresh_node_from_there():
     same configuration, bit for bit and with the same hot starts, so an execution replays
     the same; a refused request forgets nothing."""
     from rclpy.parameter import Parameter
-    from stance_msgs.srv import SetConfiguration
     counters = ("hot_starts", "polish_solves", "qp_solves", "cold_starts")
 
     def reach_out(node):    # the right hand out of reach: arm joints on their limits
