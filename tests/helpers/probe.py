@@ -9,6 +9,7 @@ import time
 from geometry_msgs.msg import PointStamped, PoseStamped
 from pik_node.node import fill_pose_msg
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from stance_msgs.msg import SolverStatus
 from stance_msgs.srv import SetConfiguration, SetStack, SetTaskEnabled
@@ -57,6 +58,24 @@ class PikProbe(BackgroundNode):
     def status_count(self):
         with self.lock:
             return len(self.statuses)
+
+    def fresh_output(self, timeout=10.0):
+        """(joint state, status) of the first IK step stamped after this call. pik_node
+        stamps a step once its inputs are frozen, so both reflect every input acknowledged
+        before the call (the two clocks are the system clock). Counting arrivals does not: a
+        probe slowed by a loaded machine can still be taking steps from before the call."""
+        called = self.node.get_clock().now()
+
+        def stamped_after(msg):
+            return msg is not None and Time.from_msg(msg.header.stamp) > called
+
+        deadline = time.monotonic() + timeout
+        while not (stamped_after(self.latest_joint_state())
+                   and stamped_after(self.latest_status())):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no pik_node step stamped after {called} in {timeout} s")
+            time.sleep(0.02)
+        return self.latest_joint_state(), self.latest_status()
 
     def publish_target(self, task, msg):
         topic = f"/pik/tasks/{task}/target"
