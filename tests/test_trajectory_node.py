@@ -449,6 +449,11 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
         counts = probe.counts()
         probe.publish_plan(plan_msg(robot, scene, short))
         statuses = probe.wait_status(counts, "done", 120)
+        # pik_node's statuses up to the last stance reached: under load some are still on
+        # their way when "done" (another topic) arrives
+        done_seen = probe.node.get_clock().now().nanoseconds * 1e-9
+        wait_until(lambda: probe.frame_log[-1][0] > done_seen, 10,
+                   what="pik_node's statuses up to the end")
         trajectories, stances, _ = probe.since(counts)
     finally:
         probe.close()
