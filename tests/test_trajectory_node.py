@@ -583,6 +583,52 @@ def test_a_stance_not_reached_in_time_stops_the_execution_and_says_what_is_late(
     assert pik.poll() is None and node.poll() is None
 
 
+def test_a_plan_waits_for_its_stance_listeners(processes, flat_steps_plan):
+    """stance_listeners: a plan sent before its listener subscribes to the active stance
+    starts once it does (the listener then gets stance 0, which a late subscriber missed);
+    a listener that never comes fails the plan after service_timeout s, naming it, and
+    the node takes the next plan. Its own pair of nodes in another DDS domain."""
+    robot, scene, plan = flat_steps_plan
+    short = Plan(plan.scene, plan.robot, plan.stances[:2])
+    domain = other_domain_id()
+    env = {"ROS_DOMAIN_ID": str(domain)}
+    processes.start("pik_node", name="pik_node", env=env)
+    node = processes.start("trajectory_node", "--ros-args", "-p",
+                           "stance_listeners:=[stance_listener]", "-p", "service_timeout:=3.0",
+                           "-p", f"samples_per_transition:={STEPS}", name="trajectory_node",
+                           env=env)
+    probe = TrajectoryProbe("listener_probe", domain)
+    listener = BackgroundNode("stance_listener", domain)
+    heard = []
+    try:
+        wait_until(lambda: probe.joint_state is not None and probe.statuses,
+                   NODE_START_TIMEOUT, what="pik_node's joint states and trajectory_node's "
+                                            "status")
+        counts = probe.counts()
+        probe.publish_plan(plan_msg(robot, scene, short))
+        statuses = probe.wait_status(counts, "failed", 60)
+        assert statuses[-1] == ("failed: execution stopped: not started after 3 s: no "
+                                "subscription of stance_listener to /trajectory/active_stance")
+        assert probe.since(counts)[1] == []             # no stance announced
+
+        counts = probe.counts()
+        probe.publish_plan(plan_msg(robot, scene, short))
+        wait_until(lambda: "plan waits: no subscription of stance_listener"
+                   in node.log_path.read_text(), 60, what="the plan waiting")
+        listener.node.create_subscription(ContactStance, "/trajectory/active_stance",
+                                          heard.append, RELIABLE)
+        listener.start_spinning()
+        probe.wait_status(counts, "done", 60)
+        wait_until(lambda: len(heard) == len(probe.since(counts)[1]), 10,
+                   what="the listener's stances")
+    finally:
+        listener.close()
+        probe.close()
+    assert [msg.index for msg in heard] == [msg.index for _, msg in probe.since(counts)[1]]
+    assert heard[0].index == 0
+    assert node.poll() is None
+
+
 def test_a_late_stance_names_what_held_it():
     """late_reason: a slow set_stack call and a pik_node pause are named with their
     durations, late ticks with the lateness they leave unexplained."""

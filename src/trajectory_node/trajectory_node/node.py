@@ -16,7 +16,10 @@ executor thread executes it (the rclpy executor keeps serving):
   CoM and posture are the forward kinematics of the trajectory sampled at the current
   time, streamed on /pik/tasks/<name>/target as a teleoperator would;
 - the active stance goes out when the transition into it starts (stance 0: at the start),
-  stamped with when that transition ends (the stabilizer_gate_node contract);
+  stamped with when that transition ends (the stabilizer_gate_node contract); a plan
+  starts only once the nodes named in `stance_listeners` (the default graph: the
+  stabilizer gate) subscribe to it and this node's publisher has matched them, waiting at
+  most `service_timeout` s (then `failed: execution stopped: not started ...`);
 - a transition starts only once the robot is at the stance before it
   (stance.execution.tracking.ArrivalGate): at the end of each transition the clock holds
   (the end sample streamed again) until pik_node's status shows each contact it creates
@@ -118,6 +121,7 @@ from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
@@ -281,6 +285,9 @@ class TrajectoryNode(Node):
         self.period = 1.0 / get("rate").value
         self.service_timeout = get("service_timeout").value
         self.execute_latched_plan = get("execute_latched_plan").value
+        self.stance_listeners = self.get_parameter_or(
+            "stance_listeners", Parameter("stance_listeners", Parameter.Type.STRING_ARRAY,
+                                          [])).value
         self.arrival_tolerance = (get("arrival_tolerance").value,
                                   get("arrival_angle_tolerance").value)
         self.arrival_com_tolerance = get("arrival_com_tolerance").value
@@ -362,6 +369,12 @@ class TrajectoryNode(Node):
         self.declare_parameter("execute_latched_plan", False, ParameterDescriptor(
             description="also execute a plan stamped before this node started (the latched "
                         "last plan)", read_only=True))
+        # a string array without a default (an empty list would be typed as bytes)
+        listeners = ParameterDescriptor(
+            description=f"nodes a plan waits for (at most service_timeout s) until each "
+                        f"subscribes to {ACTIVE_STANCE_TOPIC} and this node's publisher "
+                        "has matched it (stabilizer_gate_node); unset: none", read_only=True)
+        self.declare_parameter("stance_listeners", Parameter.Type.STRING_ARRAY, listeners)
 
     # --- inputs, preparer and executor -----------------------------------------------------
 
@@ -521,6 +534,7 @@ class TrajectoryNode(Node):
         at the end of the current transition when a newer plan is pending."""
         # s: when each stance is reached (the last one: the end, where the clock stops)
         boundaries = trajectory.times_of(path.stance_samples)
+        self._await_stance_listeners()
         self._call(self.set_configuration_client, configuration_request(self.robot,
                                                                         plan.stances[0].q))
         self._pik.arm()
@@ -528,6 +542,41 @@ class TrajectoryNode(Node):
             self._stream_plan(msg, plan, scene, planner, trajectory, boundaries)
         finally:
             self._pik.disarm()
+
+    def _await_stance_listeners(self):
+        """Return once every node of stance_listeners subscribes to the active stance and
+        this node's publisher has matched every subscription its graph shows there (a
+        transient local one never matches): stance 0 goes out at the start, and a
+        subscriber matched later (discovery can take seconds under load) misses it, so a
+        stabilizer gate would take a later stance for the start. ExecutionError after
+        service_timeout s (or at shutdown)."""
+        deadline, logged = time.monotonic() + self.service_timeout, False
+        while missing := self._unmatched_stance_listeners():
+            if self._stop.is_set() or time.monotonic() > deadline:
+                raise ExecutionError(f"not started after {self.service_timeout:g} s: "
+                                     f"{missing}")
+            if not logged:
+                self.get_logger().info(f"plan waits: {missing}")
+                logged = True
+            time.sleep(0.01)
+
+    def _unmatched_stance_listeners(self) -> str:
+        """What the start of a plan still waits for (_await_stance_listeners); '' once
+        nothing."""
+        if not self.stance_listeners:
+            return ""
+        subscriptions = self.get_subscriptions_info_by_topic(ACTIVE_STANCE_TOPIC)
+        absent = sorted(set(self.stance_listeners)
+                        - {subscription.node_name for subscription in subscriptions})
+        if absent:
+            return f"no subscription of {', '.join(absent)} to {ACTIVE_STANCE_TOPIC}"
+        matchable = sum(subscription.qos_profile.durability
+                        != DurabilityPolicy.TRANSIENT_LOCAL for subscription in subscriptions)
+        matched = self.active_stance_pub.get_subscription_count()
+        if matched < matchable:
+            return (f"{matched} of the {matchable} subscriptions to {ACTIVE_STANCE_TOPIC} "
+                    "matched")
+        return ""
 
     def _stream_plan(self, msg, plan, scene, planner, trajectory, boundaries):
         stack, held, gate = self._transition(scene, planner, plan, 0)
