@@ -552,7 +552,9 @@ class TrajectoryNode(Node):
         service_timeout s (or at shutdown)."""
         deadline, logged = time.monotonic() + self.service_timeout, False
         while missing := self._unmatched_stance_listeners():
-            if self._stop.is_set() or time.monotonic() > deadline:
+            if self._stop.is_set():
+                raise ExecutionError(f"not started (the node stops): {missing}")
+            if time.monotonic() > deadline:
                 raise ExecutionError(f"not started after {self.service_timeout:g} s: "
                                      f"{missing}")
             if not logged:
