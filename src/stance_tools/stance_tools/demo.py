@@ -45,6 +45,9 @@ READY_SUBSCRIBERS = {"/joint_states": 1, "/pik/base_pose": 1, "/pik/status": 2,
                      "/contact_planner/plan": 3, "/trajectory/joint_trajectory": 1,
                      "/trajectory/active_stance": 2, "/trajectory/status": 2,
                      "/stabilizer/state": 1}
+# nodes a plan waits for on /trajectory/active_stance (trajectory_node's stance_listeners):
+# the gate, as in the default graph, and the recorder, so that the bag holds stance 0
+STANCE_LISTENERS = ["stabilizer_gate_node", "stance_recorder"]
 STARTUP_TIMEOUT = 120.0    # s for the nodes and the recorder to come up
 PLANNING_TIMEOUT = 960.0   # s for the plan: contact_planner_node's time_budget and a margin
 INTERPOLATION_TIMEOUT = 300.0  # s from the plan to the trajectory status `executing`
@@ -284,6 +287,7 @@ def run_pipeline(args) -> int:
         timing = args.timing or ("time_optimal" if scene in TIME_OPTIMAL_SCENES else None)
         trajectory = {name: value for name, value in (("timing", timing),
                       ("velocity_scale", args.velocity_scale)) if value is not None}
+        trajectory["stance_listeners"] = STANCE_LISTENERS
         message = _execute(group, scene, trajectory, {"workers": args.planner_workers}, bag,
                            record)
     finally:
