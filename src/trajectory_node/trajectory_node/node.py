@@ -119,10 +119,11 @@ from pik_node.node import (LATCHED, RELIABLE, TARGET_TYPES, fill_pose_msg, float
                            run_node, target_topic)
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.duration import Duration
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import InvalidNodeNameException, ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.validate_node_name import validate_node_name
 from sensor_msgs.msg import JointState
 from stance import Robot, RobotModelError
 from stance.execution.interpolation import (InterpolatedPlan, InterpolationError,
@@ -288,6 +289,13 @@ class TrajectoryNode(Node):
         self.stance_listeners = self.get_parameter_or(
             "stance_listeners", Parameter("stance_listeners", Parameter.Type.STRING_ARRAY,
                                           [])).value
+        for name in self.stance_listeners:
+            try:
+                validate_node_name(name)
+            except InvalidNodeNameException as error:
+                reason = str(error).splitlines()[0].removeprefix("Invalid node name: ")
+                raise ValueError(f"stance_listeners: {name!r} is not a node name: "
+                                 f"{reason.rstrip(':')}") from None
         self.arrival_tolerance = (get("arrival_tolerance").value,
                                   get("arrival_angle_tolerance").value)
         self.arrival_com_tolerance = get("arrival_com_tolerance").value
