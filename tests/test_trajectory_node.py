@@ -173,6 +173,18 @@ class TrajectoryProbe(BackgroundNode):
             return statuses if any(s.startswith(f"{state}:") for s in statuses) else None
         return wait_until(arrived, timeout, what=f"trajectory status {state!r}")
 
+    def plan_end(self, counts, last, trajectories, timeout=10.0):
+        """(trajectories, stances, statuses) since counts, once stance `last` has come
+        twice in a row (announced, then again when reached) and at least `trajectories`
+        JointTrajectory messages have: both are published on their own topics just before
+        the status that says so, and may still be on their way when it arrives."""
+        def arrived():
+            received = self.since(counts)
+            ends = [msg.index for _, msg in received[1][-2:]] == [last, last]
+            return received if ends and len(received[0]) >= trajectories else None
+        return wait_until(arrived, timeout, what=f"stance {last} announced again and "
+                                                 f"{trajectories} trajectories")
+
     def joint_error(self, robot, q):
         """Max |joint - q's joint| (rad) over pik_node's latest joint state."""
         with self.lock:
@@ -263,7 +275,7 @@ def test_flat_steps_plan_is_executed_through_pik_node(graph, flat_steps_plan):
     # load) is announced again when reached, with the trajectory shifted as much
     waited_at = reannounced(statuses)
 
-    trajectories, stances, _ = probe.since(counts)
+    trajectories, stances, _ = probe.plan_end(counts, count - 1, 1 + len(waited_at))
     assert len(trajectories) == 1 + len(waited_at)
     trajectory = trajectories[0]
     assert len(trajectory.points) == (count - 1) * STEPS + 1
@@ -371,7 +383,8 @@ def test_new_plan_takes_over_at_the_end_of_the_current_transition(graph, flat_st
     probe.publish_plan(plan_msg(robot, scene, short))
     statuses = probe.wait_status(counts, "done", 90)
     assert any("superseded" in status for status in statuses), statuses
-    trajectories, stances, _ = probe.since(counts)
+    trajectories, stances, _ = probe.plan_end(counts, len(short.stances) - 1,
+                                              2 + len(reannounced(statuses)))
     received = [msg.index for _, msg in stances]
     superseded_at = received[received.index(0, 1) - 1]
     # the stance the first plan stopped at was announced again when reached
@@ -454,7 +467,8 @@ def test_a_lagging_pik_node_makes_the_clock_wait_for_the_robot_at_each_stance(pr
         done_seen = probe.node.get_clock().now().nanoseconds * 1e-9
         wait_until(lambda: probe.frame_log[-1][0] > done_seen, 10,
                    what="pik_node's statuses up to the end")
-        trajectories, stances, _ = probe.since(counts)
+        trajectories, stances, _ = probe.plan_end(counts, len(short.stances) - 1,
+                                                  1 + len(reannounced(statuses)))
     finally:
         probe.close()
     waited = {int(status.split()[2]): status for status in statuses
