@@ -12,13 +12,14 @@ import pinocchio as pin
 import pytest
 
 from stance.execution.interpolation import (DETOUR_LINE_TOLERANCE, SAMPLE_CONTACT_TOLERANCE,
-                                            InterpolationError, InterpolationStopped, SpotPath,
-                                            TransitionPlanner, spot_pose)
+                                            InterpolationError, SpotPath, TransitionPlanner,
+                                            spot_pose)
 from stance.planning.collision import CollisionModel
 from stance.planning.contacts import Contact, Plan, Stance, load_plan
 from stance.planning.planner import PlanRequest, plan_contacts
 from stance.planning.scene import load_scene
 from stance.robot import Robot
+from stance.stopping import Stopped
 
 LIFT = 0.05
 CHAIR_PLAN = Path(__file__).resolve().parent.parent / "docs" / "figures" / "chair_table_plan.json"
@@ -197,7 +198,7 @@ def test_an_interpolation_stops_when_asked_before_a_sample(flat):
     """should_stop is asked before each sample: the first True abandons the plan."""
     _, _, plan, planner, _ = flat
     asked = []
-    with pytest.raises(InterpolationStopped, match="transition 0 -> 1, sample 4/10"):
+    with pytest.raises(Stopped, match="transition 0 -> 1, sample 4/10"):
         planner.interpolate(plan, should_stop=lambda: asked.append(True) or len(asked) > 3)
     assert len(asked) == 4
 

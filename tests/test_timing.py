@@ -10,6 +10,7 @@ import pytest
 
 from stance.execution.timing import sinusoidal_trajectory, time_optimal_trajectory
 from stance.robot import Robot
+from stance.stopping import Stopped
 
 SCALE = 0.5
 ACCELERATION = 3.0       # rad/s^2
@@ -132,3 +133,16 @@ def test_a_path_of_one_sample_or_not_finite_is_refused(robot, samples, timing):
 def test_a_time_optimal_grid_below_one_is_refused(robot, samples):
     with pytest.raises(ValueError, match="grid must be an integer >= 1"):
         time_optimal_trajectory(robot, samples, [25], grid=0)
+
+
+def test_a_time_optimal_timing_stops_when_asked_before_a_transition(robot, samples):
+    """should_stop is asked before each transition (rest to rest): the first True
+    abandons the timing."""
+    asked = []
+    with pytest.raises(Stopped, match="timing stopped at transition 1 -> 2"):
+        time_optimal_trajectory(robot, samples, [25],
+                                should_stop=lambda: asked.append(True) or len(asked) > 1)
+    assert len(asked) == 2
+    asked.clear()
+    time_optimal_trajectory(robot, samples, [25], should_stop=lambda: asked.append(True))
+    assert len(asked) == 2      # never True: both transitions timed

@@ -13,6 +13,7 @@ import pytest
 import rclpy
 import trajectory_node.node as trajectory
 from conftest import other_domain_id, wait_until
+from stance.stopping import Stopped
 from trajectory_node.conversions import PlanRejected
 from trajectory_node.node import TrajectoryNode
 
@@ -29,7 +30,7 @@ class Script:
         node._execute = self.execute
         node._time = lambda path: None
 
-    def verify(self, plan, scene, robot):
+    def verify(self, plan, scene, robot, should_stop=None):
         self.verified.append(plan)
         time.sleep(self.prepare_time[plan])
         if plan.startswith("bad"):
@@ -68,19 +69,21 @@ class StubPlanner:
         pass
 
     def interpolate(self, plan, should_stop=None):
-        return None
+        return SimpleNamespace(q=None, event_samples=None)
 
 
-class EndlessPlanner(StubPlanner):
-    """An interpolation that only ends when asked to stop; `asking` is set once it asks."""
+class Endless:
+    """A step of the preparation that only ends when asked to stop; `asking` is set once
+    it asks."""
 
-    asking = threading.Event()
+    def __init__(self):
+        self.asking = threading.Event()
 
-    def interpolate(self, plan, should_stop=None):
+    def __call__(self, should_stop):
         while not should_stop():
             self.asking.set()
             time.sleep(0.01)
-        raise trajectory.InterpolationStopped("stopped")
+        raise Stopped("stopped")
 
 
 @pytest.fixture
@@ -183,15 +186,27 @@ def test_plans_in_a_row_each_execute_once(stubbed):
         assert script.executed == ["A", "B", "C"]
 
 
-def test_stopping_the_node_ends_an_interpolation_under_way(stubbed, monkeypatch):
-    """The preparer asks to stop between samples: stop_worker ends it at once, with no
-    status, the preparer idle (it used to interpolate the whole plan in a daemon thread
-    after the node stopped)."""
-    monkeypatch.setattr(trajectory, "TransitionPlanner", EndlessPlanner)
-    monkeypatch.setattr(EndlessPlanner, "asking", threading.Event())
+@pytest.mark.parametrize("step", ["verification", "interpolation", "timing"])
+def test_stopping_the_node_ends_a_preparation_under_way(stubbed, monkeypatch, step):
+    """Each step of a preparation asks to stop between stances, samples or transitions:
+    stop_worker ends it at once, with no status, the preparer idle (an interpolation used
+    to go on in a daemon thread after the node stopped; a verification or a time-optimal
+    timing held the stop for seconds on the chair plan)."""
+    endless = Endless()
     with stubbed({"A": 0.0}) as script:
+        if step == "verification":
+            monkeypatch.setattr(trajectory, "_require_verified",
+                                lambda plan, scene, robot, should_stop: endless(should_stop))
+        elif step == "interpolation":
+            monkeypatch.setattr(StubPlanner, "interpolate",
+                                lambda self, plan, should_stop: endless(should_stop))
+        else:   # the node's own _time, on to the library's time-optimal timing
+            del script.node._time
+            script.node.timing = "time_optimal"
+            monkeypatch.setattr(trajectory, "time_optimal_trajectory",
+                                lambda *args, should_stop: endless(should_stop))
         script.arrive("A")
-        wait_until(EndlessPlanner.asking.is_set, 5, what="the interpolation under way")
+        wait_until(endless.asking.is_set, 5, what=f"the {step} under way")
         statuses = len(script.statuses)
         began = time.monotonic()
         script.node.stop_worker()

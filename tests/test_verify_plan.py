@@ -15,6 +15,7 @@ from stance.planning.contacts import Contact, Plan, Stance, save_plan
 from stance.planning.scene import ContactSpot, Goal, Obstacle, Scene, Surface
 from stance.planning.verify import PlanVerifier, robot_asset_paths, stance_transition, verify_plan
 from stance.robot import Robot
+from stance.stopping import Stopped
 from stance_tools import cli
 
 # Spot frames: z out of the sole (the sole frames' z points up into the foot).
@@ -92,6 +93,15 @@ def test_standing_plan_passes(verifier, good_plan):
 
 def test_verify_plan_builds_its_own_models(robot, standing, good_plan):
     assert verify_plan(good_plan, make_scene(standing), robot).ok
+
+
+def test_a_verification_stops_when_asked_before_a_stance(robot, standing, good_plan):
+    """should_stop is asked before each stance: the first True abandons the plan."""
+    asked = []
+    with pytest.raises(Stopped, match="verification stopped at stance 2"):
+        verify_plan(good_plan, make_scene(standing), robot,
+                    should_stop=lambda: asked.append(True) or len(asked) > 2)
+    assert len(asked) == 3
 
 
 def test_foot_five_millimetres_off_is_reported(verifier, good_plan):

@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from ..planning.posture import PostureGenerator, PostureSettings, ReferencePosture
 from ..planning.scene import placement_problem
+from ..stopping import stop_if_asked
 
 LIFT = 0.05    # m: default length of the straight lines leaving and entering a contact
 # m: clearance required at the samples (the planner's stances use 5 mm): the moving body's
@@ -70,10 +71,6 @@ class InterpolationError(RuntimeError):
         super().__init__(f"transition {transition} -> {transition + 1}: sample {sample}/"
                          f"{steps} failed: {reason}")
         self.transition, self.sample, self.reason = transition, sample, reason
-
-
-class InterpolationStopped(Exception):
-    """The caller's should_stop() answered True: the interpolation was abandoned."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -263,8 +260,8 @@ class TransitionPlanner:
         """(interior samples (n - 1, nq), statistics dict) from stance `first` to `second`;
         raises InterpolationError when a sample fails on the path and on its detour, even
         when approached through SUBDIVISIONS levels of halved steps, and
-        InterpolationStopped when should_stop (a callable, asked before each sample)
-        answers True.
+        stopping.Stopped when should_stop (a callable, asked before each sample) answers
+        True.
 
         From the first sample the path blocks (collisions, stability or joint limits), the
         transition takes a detour: the spline is then a guide only (any distance from it)
@@ -282,9 +279,8 @@ class TransitionPlanner:
         sampler = _Sampler(self, first, second, common, paths, position_only)
         q, previous, samples = first.q, first.q, []
         for k in range(1, steps):
-            if should_stop is not None and should_stop():
-                raise InterpolationStopped(f"stopped at transition {index} -> {index + 1}, "
-                                           f"sample {k}/{steps}")
+            stop_if_asked(should_stop, f"stopped at transition {index} -> {index + 1}, "
+                                       f"sample {k}/{steps}")
             # warm start: the previous sample moved on by the last sample's step
             guess = pin.integrate(model, q, pin.difference(model, previous, q))
             result = sampler.reach((k - 1) / steps, q, k / steps, guess, SUBDIVISIONS)
@@ -340,7 +336,7 @@ class TransitionPlanner:
     def interpolate(self, plan, should_stop=None) -> InterpolatedPlan:
         """The whole plan as one sampled path (raises InterpolationError on a failure;
         ValueError for fewer than two stances, a witness that is not nq finite values or a
-        contact off the scene: scene.placement_problem; InterpolationStopped once
+        contact off the scene: scene.placement_problem; stopping.Stopped once
         should_stop, a callable asked before each sample, answers True)."""
         stances = plan.stances
         if len(stances) < 2:
