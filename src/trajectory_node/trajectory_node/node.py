@@ -79,7 +79,7 @@ found at start-up) is not executed unless `execute_latched_plan` is true: a node
 by `stance graph` must not replay the last plan from its first witness; the status says so.
 A plan equal to the last one received (header stamp included) is ignored.
 At shutdown a preparation under way stops with no status, before its next stance to
-verify, sample to interpolate or transition to time (within ~30 ms on Talos).
+verify, sample to interpolate or transition to time (each ~5-30 ms of work on Talos).
 
 Topics and services (QoS in parentheses):
   sub  /contact_planner/plan         stance_msgs/StancePlan (reliable, transient local)
