@@ -650,9 +650,10 @@ def test_a_late_stance_names_what_held_it():
     assert late_reason(gate, 0.3, 0.0, 0.0) == \
         "0.30 s late (late ticks: trajectory_node starved, the motion slowed)"
     assert late_reason(gate, 0.3, 0.0, 0.292) == \
-        "0.30 s late (streaming held 0.29 s by the /pik/set_stack call)"
+        "0.30 s late (streaming held 0.29 s by the /pik/set_stack call and its target topics)"
     assert late_reason(gate, 0.5, 0.0, 0.2) == ("0.50 s late (streaming held 0.20 s by the "
-                                                "/pik/set_stack call; late ticks 0.30 s: "
+                                                "/pik/set_stack call and its target "
+                                                "topics; late ticks 0.30 s: "
                                                 "trajectory_node starved, the motion slowed)")
     assert late_reason(gate, 1.405, 1.4, 0.005) == \
         "1.41 s late (streaming paused 1.40 s for pik_node)"

@@ -13,9 +13,14 @@ import pytest
 import rclpy
 import trajectory_node.node as trajectory
 from conftest import other_domain_id, wait_until
+from geometry_msgs.msg import PoseStamped
+from pik_node.node import RELIABLE
+from stance.stack import TaskSpec
 from stance.stopping import Stopped
+from stance_msgs.msg import SolverStatus
+from stance_tools.background_node import BackgroundNode
 from trajectory_node.conversions import PlanRejected
-from trajectory_node.node import TrajectoryNode
+from trajectory_node.node import ExecutionError, TrajectoryNode
 
 
 class Script:
@@ -214,3 +219,32 @@ def test_stopping_the_node_ends_a_preparation_under_way(stubbed, monkeypatch, st
         assert not any(worker.is_alive() for worker in script.node._workers)
         assert len(script.statuses) == statuses and script.executed == []
         assert script.idle()
+
+
+def test_streaming_waits_for_pik_node_to_subscribe_to_each_target(stubbed):
+    """After a stack, streaming waits until this node's publisher on each task's target
+    topic has matched pik_node (the /pik/status publisher): a target published then
+    reaches it (one sent before the match is lost). pik_node not subscribing in time fails
+    the plan, naming the topic."""
+    spec = TaskSpec(name="left_sole", kind="pose", frame="left_sole_link")
+    received = []
+    with stubbed({}) as script:
+        node = script.node
+        pik = BackgroundNode("pik_node", other_domain_id())
+        try:
+            pik.node.create_publisher(SolverStatus, "/pik/status", 1)
+            pik.start_spinning()
+            wait_until(lambda: node.get_publishers_info_by_topic("/pik/status"), 30,
+                       what="pik_node's status publisher in the graph")
+            node.service_timeout = 0.5
+            with pytest.raises(ExecutionError, match=r"^not started after 0.5 s: no "
+                               "subscription of pik_node to /pik/tasks/left_sole/target$"):
+                node._await_target_subscriptions([spec], "plan", "not started")
+            pik.node.create_subscription(PoseStamped, "/pik/tasks/left_sole/target",
+                                         received.append, RELIABLE)
+            node.service_timeout = 30.0
+            node._await_target_subscriptions([spec], "plan", "not started")
+            node._target_publisher(spec).publish(PoseStamped())
+            wait_until(lambda: received, 5, what="the target at pik_node")
+        finally:
+            pik.close()

@@ -14,7 +14,11 @@ executor thread executes it (the rclpy executor keeps serving):
   contact, spot target * placement^-1), the moving spots as pose tasks and the CoM (x, y)
   at priority 1, the posture at priority 2; at `rate` Hz, the targets of the moving spots,
   CoM and posture are the forward kinematics of the trajectory sampled at the current
-  time, streamed on /pik/tasks/<name>/target as a teleoperator would;
+  time, streamed on /pik/tasks/<name>/target as a teleoperator would; pik_node subscribes
+  there when it takes a stack with that task, so after each /pik/set_stack call streaming
+  waits until this node's publisher has matched it (a target sent before is lost), at
+  most `service_timeout` s (then `failed: execution stopped: not started ...` at the
+  start, `... transition k not started ...` later);
 - the active stance goes out when the transition into it starts (stance 0: at the start),
   stamped with when that transition ends (the stabilizer_gate_node contract); a plan
   starts only once the nodes named in `stance_listeners` (the default graph: the
@@ -36,7 +40,7 @@ executor thread executes it (the rclpy executor keeps serving):
   MAX_TICK_ADVANCE periods at most: the motion slows down instead of the targets jumping
   ahead along the path;
 - a stance reached more than LATE_STANCE s after its stamp (a wait, late ticks, a slow
-  /pik/set_stack call) goes out again, stamped when it was reached, with `executing:
+  /pik/set_stack call or match of its target topics) goes out again, stamped when it was reached, with `executing:
   stance k reached after waiting ...` or `... reached X s late (<causes>)` (late_reason),
   and the JointTrajectory goes out again with its start shifted by as much. The last
   stance executed (the plan's, or the one a newer plan takes over at) goes out again when
@@ -558,46 +562,74 @@ class TrajectoryNode(Node):
 
     def _await_stance_listeners(self):
         """Return once every node of stance_listeners subscribes to the active stance and
-        this node's publisher has matched every subscription its graph shows there (a
-        transient local one never matches): stance 0 goes out at the start, and a
-        subscriber matched later (discovery can take seconds under load) misses it, so a
-        stabilizer gate would take a later stance for the start. ExecutionError after
-        service_timeout s (or at shutdown)."""
+        this node's publisher has matched them (_unmatched): stance 0 goes out at the
+        start, and a subscriber matched later (discovery can take seconds under load)
+        misses it, so a stabilizer gate would take a later stance for the start."""
+        if self.stance_listeners:
+            self._await_matched("plan", "not started", lambda: self._unmatched(
+                ACTIVE_STANCE_TOPIC, self.active_stance_pub, self.stance_listeners))
+
+    def _await_target_subscriptions(self, stack, what: str, not_started: str):
+        """Return once pik_node subscribes to the target topic of every task of `stack`
+        and this node's publisher there has matched a subscription (_unmatched, not
+        every: one of a killed pik_node stays in the graph, never matched, until its lease
+        expires): pik_node subscribes to a task's topic when it takes a stack with that
+        task, and a target sent before the match is lost (the first ones of a plan were,
+        under load: the robot fell 0.2 rad behind the motion at once). pik_node: the
+        publishers of /pik/status."""
+        def missing():
+            pik = {info.node_name for info in self.get_publishers_info_by_topic(
+                PIK_STATUS_TOPIC)}
+            if not pik:
+                return f"no publisher of {PIK_STATUS_TOPIC} (pik_node) in the graph"
+            return next(filter(None, (self._unmatched(target_topic(spec.name),
+                                                      self._target_publisher(spec), pik,
+                                                      every=False)
+                                      for spec in stack)), "")
+        self._await_matched(what, not_started, missing)
+
+    def _await_matched(self, what: str, not_started: str, missing):
+        """Return once missing() (what `what` still waits for) answers ''; log what it
+        waits for once; ExecutionError `not_started ...: <what it waits for>` after
+        service_timeout s (or at shutdown), PikLost as soon as the watch loses pik_node."""
         deadline, logged = time.monotonic() + self.service_timeout, False
-        while missing := self._unmatched_stance_listeners():
+        while reason := missing():
+            lost = self._pik.lost()
+            if lost:
+                raise PikLost(lost)
             if self._stop.is_set():
-                raise ExecutionError(f"not started (the node stops): {missing}")
+                raise ExecutionError(f"{not_started} (the node stops): {reason}")
             if time.monotonic() > deadline:
-                raise ExecutionError(f"not started after {self.service_timeout:g} s: "
-                                     f"{missing}")
+                raise ExecutionError(f"{not_started} after {self.service_timeout:g} s: "
+                                     f"{reason}")
             if not logged:
-                self.get_logger().info(f"plan waits: {missing}")
+                self.get_logger().info(f"{what} waits: {reason}")
                 logged = True
             time.sleep(0.01)
 
-    def _unmatched_stance_listeners(self) -> str:
-        """What the start of a plan still waits for (_await_stance_listeners); '' once
-        nothing."""
-        if not self.stance_listeners:
-            return ""
-        subscriptions = self.get_subscriptions_info_by_topic(ACTIVE_STANCE_TOPIC)
-        absent = sorted(set(self.stance_listeners)
-                        - {subscription.node_name for subscription in subscriptions})
+    def _unmatched(self, topic, publisher, nodes, every: bool = True) -> str:
+        """What `publisher` (on `topic`) still waits for before it sends: '' once every
+        node named in `nodes` subscribes there and the publisher has matched every
+        subscription this node's graph shows there (a transient local one never matches a
+        volatile publisher), or one at least if not `every`."""
+        subscriptions = self.get_subscriptions_info_by_topic(topic)
+        absent = sorted(set(nodes) - {subscription.node_name for subscription in subscriptions})
         if absent:
-            return f"no subscription of {', '.join(absent)} to {ACTIVE_STANCE_TOPIC}"
+            return f"no subscription of {', '.join(absent)} to {topic}"
         matchable = sum(subscription.qos_profile.durability
                         != DurabilityPolicy.TRANSIENT_LOCAL for subscription in subscriptions)
-        matched = self.active_stance_pub.get_subscription_count()
-        if matched < matchable:
-            return (f"{matched} of the {matchable} subscriptions to {ACTIVE_STANCE_TOPIC} "
-                    "matched")
+        matched = publisher.get_subscription_count()
+        if matched < (matchable if every else min(matchable, 1)):
+            return f"{matched} of the {matchable} subscriptions to {topic} matched"
         return ""
 
     def _stream_plan(self, msg, plan, scene, planner, trajectory, boundaries):
         stack, held, gate = self._transition(scene, planner, plan, 0)
-        # pik_node holds the first stack before the clock starts: a service round trip
-        # inside the clock (0.1-0.3 s under load) left the robot that far behind at once
+        # pik_node holds the first stack, and takes its targets, before the clock starts: a
+        # service round trip or a discovery inside the clock (0.1-0.3 s under load) left
+        # the robot that far behind at once
         self._call(self.set_stack_client, stack_request(stack))
+        self._await_target_subscriptions(stack, "plan", "not started")
         sent = stack                              # the stack pik_node holds
         # built once, before the clock starts (sampling a long plan takes 0.1-0.2 s), then
         # sent again restamped
@@ -608,6 +640,7 @@ class TrajectoryNode(Node):
         due = self._publish_active(msg, 1, start, boundaries[1])
         paused = 0.0   # s streaming paused in the current transition (pik_node lost)
         held_by_call = 0.0   # s streaming waited in the current transition for set_stack
+        #                      and its target topics
         self._status("executing", f"{len(plan.stances)} stances in {trajectory.duration:.2f} "
                                   f"s ({self.timing})")
         transition, last, t, next_tick = 0, len(plan.stances) - 2, 0.0, began
@@ -616,6 +649,9 @@ class TrajectoryNode(Node):
                 if stack != sent:
                     called_at = time.monotonic()
                     self._call(self.set_stack_client, stack_request(stack))
+                    self._await_target_subscriptions(
+                        stack, f"transition {transition}",
+                        f"transition {transition} not started")
                     held_by_call += time.monotonic() - called_at
                     sent = stack
                 lost = self._pik.lost()
@@ -870,7 +906,8 @@ def _require_verified(plan, scene, robot, shown: int = 3, should_stop=None) -> N
 def late_reason(gate, late, paused, held_by_call) -> str:
     """Why the stance `gate` awaited was reached `late` s after its stamp, for the status:
     a wait for the robot, streaming `paused` s for a lost pik_node, or `held_by_call` s
-    by the set_stack call that started the transition, late ticks for the rest."""
+    by the set_stack call that started the transition and the match of its target topics
+    (_await_target_subscriptions), late ticks for the rest."""
     pause = f"streaming paused {paused:.2f} s for pik_node" if paused else ""
     if gate.waiting_since is not None:
         waited = (f"waiting {gate.waited(time.monotonic()):.2f} s for the robot to arrive "
@@ -878,7 +915,8 @@ def late_reason(gate, late, paused, held_by_call) -> str:
         return f"after {pause + ' and ' if pause else ''}{waited}"
     causes = [pause] if pause else []
     if held_by_call > NOTED_DELAY:
-        causes.append(f"streaming held {held_by_call:.2f} s by the /pik/set_stack call")
+        causes.append(f"streaming held {held_by_call:.2f} s by the /pik/set_stack call "
+                      "and its target topics")
     rest = late - paused - held_by_call
     if not causes:
         causes.append("late ticks: trajectory_node starved, the motion slowed")
