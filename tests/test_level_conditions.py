@@ -64,6 +64,57 @@ def test_a_level_its_lm_damping_holds_back_is_damped(talos, hierarchy):
     assert levels[0].damping == pytest.approx(1e-3, rel=1e-3)
 
 
+RUNTIME_KERNELS_CHECK = """
+import numba
+import numpy as np
+from stance import hierarchy, limits, pik, qp_hierarchy, swing, tasks
+from stance.robot import Robot
+from stance.stack import parse_stack_yaml
+from stance_tools.bench import bench_start
+
+def loaded():
+    return {(module.__name__, name, str(signature))
+            for module in (hierarchy, limits, pik, qp_hierarchy, swing, tasks)
+            for name, kernel in vars(module).items()
+            if isinstance(kernel, numba.core.registry.CPUDispatcher)
+            for signature in kernel.signatures}
+
+talos = Robot.from_example_robot_data("talos")
+q = bench_start(talos)
+solver = pik.PIKSolver(talos, hierarchy=HIERARCHY, dt=0.002, lm_damping=pik.LM_DAMPING)
+solver.set_stack(parse_stack_yaml(STACK), q)
+solver.warm_up(q)
+before = loaded()
+target = solver.task("hand").target
+target.translation += np.array([0.05, 0.0, 0.05])
+solver.task("hand").set_target(target)
+for _ in range(3):
+    result = solver.step(q)
+    q = result.q
+print([level.condition for level in result.levels])
+print(sorted(loaded() - before))
+"""
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+def test_warm_up_loads_what_a_damped_level_report_calls(hierarchy):
+    """A level short of its step has its condition decided from Python at the first status
+    read (_level_condition): warm_up must have loaded those kernels from numba's cache, or
+    pik_node's control loop paid 40-80 ms at the first plan step it fell behind in. In a
+    fresh process (this one has loaded them already)."""
+    import subprocess
+    import sys
+
+    script = (f"HIERARCHY = {hierarchy!r}\nSTACK = {FEET + HAND_AND_POSTURE!r}\n"
+              + RUNTIME_KERNELS_CHECK)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    conditions, loaded = done.stdout.strip().splitlines()
+    assert conditions == "['met', 'damped', 'conflict']"
+    assert loaded == "[]"
+
+
 @pytest.mark.parametrize("hierarchy", ["svd", "qp"])
 @pytest.mark.parametrize("priority, condition", [(2, "conflict"), (1, "singular")])
 def test_a_contradicting_level_is_a_conflict_contradicting_rows_are_singular(

@@ -418,7 +418,17 @@ class PIKSolver:
         which a real-time loop must not pay on its first cycle; then 0.5 s from the cache."""
         robot, nv = self.robot, self.robot.model.nv
         self.step(q)   # leaves the stacked Jacobian and target filled at q
-        _level_residuals(self._jacobian, self._target, self._layout.offsets, np.zeros(nv))
+        offsets = self._layout.offsets
+        _level_residuals(self._jacobian, self._target, offsets, np.zeros(nv))
+        if len(offsets) > 1:   # what a level's condition calls from Python (_level_condition)
+            #                    once a level falls short: pik_node's first plan paid it,
+            #                    40-80 ms of cache load in its control loop
+            rows = slice(offsets[0], offsets[1])
+            _damped_least_squares(self._jacobian[rows], self._target[rows], self.damping ** 2)
+            DampedHierarchy(damping=self.damping).solve_stacked(
+                self._jacobian[:offsets[1]].copy(), self._target[:offsets[1]].copy(),
+                offsets[:2], np.zeros(0, dtype=np.int64), np.zeros(0))
+            self._dq_bounds(q)   # the bounds it checks (the svd hierarchy's steps need none)
         # kernels a later stack or strategy may need: the task kinds', the joint limits'
         for spec in (TaskSpec("com", "com"),
                      TaskSpec("frame", "pose", frame=robot.model.frames[-1].name)):
