@@ -31,6 +31,7 @@ clamping`, or ros2 param set).
 
 from __future__ import annotations
 
+import gc
 import re
 import signal
 import sys
@@ -534,10 +535,11 @@ def _a_type(type_name: str) -> str:
 def run_node(label: str, make_node, startup_errors: tuple, args=None, start=None, stop=None,
              make_executor=SingleThreadedExecutor) -> int:
     """The entry point of every Stance node: build the node (exit 1 with the reason on
-    `startup_errors` and on parameter errors: a wrong type, a value out of range), call
-    start(node), spin on make_executor() until SIGINT or SIGTERM, call stop(node) (so work
-    in executor callbacks ends: stop must wait for it, as rclpy's Executor.shutdown does
-    not), shut down the executor and rclpy; exit 0."""
+    `startup_errors` and on parameter errors: a wrong type, a value out of range), freeze
+    what exists then out of the cyclic garbage collector's reach, call start(node), spin on
+    make_executor() until SIGINT or SIGTERM, call stop(node) (so work in executor
+    callbacks ends: stop must wait for it, as rclpy's Executor.shutdown does not), shut
+    down the executor and rclpy; exit 0."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = make_node()
@@ -545,6 +547,11 @@ def run_node(label: str, make_node, startup_errors: tuple, args=None, start=None
         print(f"{label}: cannot start: {startup_error_message(error)}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
+    # What the node holds from start-up lives as long as it does: a full collection then
+    # scans only what it allocates later (pik_node: 81 ms per full collection of its ~140k
+    # start-up objects, 40 missed periods at 500 Hz; ~0 frozen)
+    gc.collect()
+    gc.freeze()
     if start is not None:
         start(node)
     executor = make_executor()
