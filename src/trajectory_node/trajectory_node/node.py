@@ -40,9 +40,10 @@ executor thread executes it (the rclpy executor keeps serving):
   MAX_TICK_ADVANCE periods at most: the motion slows down instead of the targets jumping
   ahead along the path;
 - a stance reached more than LATE_STANCE s after its stamp (a wait, late ticks, a slow
-  /pik/set_stack call or match of its target topics) goes out again, stamped when it was reached, with `executing:
-  stance k reached after waiting ...` or `... reached X s late (<causes>)` (late_reason),
-  and the JointTrajectory goes out again with its start shifted by as much. The last
+  /pik/set_stack call or match of its target topics) goes out again, stamped when it was
+  reached, with `executing: stance k reached after waiting ...` or `... reached X s late
+  (<causes>)` (late_reason), and the JointTrajectory goes out again with its start
+  shifted by as much. The last
   stance executed (the plan's, or the one a newer plan takes over at) goes out again when
   reached in any case (stamped as planned if on time): no next stance says that the robot
   is there, which an ON switch of stabilizer_gate_node waits for.
