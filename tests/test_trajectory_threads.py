@@ -226,7 +226,8 @@ def test_streaming_waits_for_pik_node_to_subscribe_to_each_target(stubbed):
     topic has matched pik_node (the /pik/status publisher): a target published then
     reaches it (one sent before the match is lost). pik_node not subscribing in time fails
     the plan, naming the topic."""
-    spec = TaskSpec(name="left_sole", kind="pose", frame="left_sole_link")
+    # a topic of its own: a pik_node of an earlier test may have left left_sole's behind
+    spec = TaskSpec(name="matched_sole", kind="pose", frame="left_sole_link")
     received = []
     with stubbed({}) as script:
         node = script.node
@@ -238,9 +239,9 @@ def test_streaming_waits_for_pik_node_to_subscribe_to_each_target(stubbed):
                        what="pik_node's status publisher in the graph")
             node.service_timeout = 0.5
             with pytest.raises(ExecutionError, match=r"^not started after 0.5 s: no "
-                               "subscription of pik_node to /pik/tasks/left_sole/target$"):
+                               "subscription of pik_node to /pik/tasks/matched_sole/target$"):
                 node._await_target_subscriptions([spec], "plan", "not started")
-            pik.node.create_subscription(PoseStamped, "/pik/tasks/left_sole/target",
+            pik.node.create_subscription(PoseStamped, "/pik/tasks/matched_sole/target",
                                          received.append, RELIABLE)
             node.service_timeout = 30.0
             node._await_target_subscriptions([spec], "plan", "not started")
