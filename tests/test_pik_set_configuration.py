@@ -39,14 +39,9 @@ def robot():
     return Robot.load("talos")
 
 
-def settled(probe):
-    """(joint state, status) of an IK step stamped after this call."""
-    return probe.fresh_output()
-
-
 def test_good_request_moves_the_robot_and_every_task_holds_there(pik, robot):
     node, probe, client = pik
-    _, before = settled(probe)
+    _, before = probe.fresh_output()
     q = robot.initial_configuration()
     q[0] += SHIFT
     lower, upper = (bound[robot.limited_joint_names.index(ARM)]
@@ -56,7 +51,7 @@ def test_good_request_moves_the_robot_and_every_task_holds_there(pik, robot):
     response = probe.call(client, configuration_request(robot, q))
     assert response.success, response.message
 
-    joint_state, status = settled(probe)
+    joint_state, status = probe.fresh_output()
     positions = dict(zip(joint_state.name, joint_state.position))
     assert positions[ARM] == pytest.approx(arm_value, abs=1e-6)
     expected = robot.actuated_positions(q)
@@ -78,7 +73,7 @@ def test_good_request_moves_the_robot_and_every_task_holds_there(pik, robot):
 ])
 def test_bad_request_is_rejected_with_its_reason_and_changes_nothing(pik, robot, case, words):
     node, probe, client = pik
-    joint_state, status = settled(probe)
+    joint_state, status = probe.fresh_output()
     q = robot.initial_configuration()
     request = configuration_request(robot, q)
     index = list(request.joints.name).index(ARM)
@@ -98,7 +93,7 @@ def test_bad_request_is_rejected_with_its_reason_and_changes_nothing(pik, robot,
     assert not response.success
     for word in words:
         assert word in response.message, (word, response.message)
-    after_state, after_status = settled(probe)
+    after_state, after_status = probe.fresh_output()
     assert np.allclose(after_state.position, joint_state.position, atol=1e-9)
     assert after_status.rejected_inputs == status.rejected_inputs + 1
     assert response.message in after_status.last_rejection

@@ -62,8 +62,9 @@ class PikProbe(BackgroundNode):
     def fresh_output(self, timeout=10.0):
         """The latest (joint state, status) once both are of IK steps stamped after this
         call. pik_node stamps a step once its inputs are frozen, so both reflect every input
-        acknowledged before the call (the two clocks are the system clock). Counting arrivals does not: a
-        probe slowed by a loaded machine can still be taking steps from before the call."""
+        acknowledged before the call (the two clocks are the system clock). Counting
+        arrivals does not: a probe slowed by a loaded machine can still be taking steps
+        from before the call."""
         called = self.node.get_clock().now()
 
         def stamped_after(msg):

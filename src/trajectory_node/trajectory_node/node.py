@@ -43,10 +43,10 @@ executor thread executes it (the rclpy executor keeps serving):
   /pik/set_stack call or match of its target topics) goes out again, stamped when it was
   reached, with `executing: stance k reached after waiting ...` or `... reached X s late
   (<causes>)` (late_reason), and the JointTrajectory goes out again with its start
-  shifted by as much. The last
-  stance executed (the plan's, or the one a newer plan takes over at) goes out again when
-  reached in any case (stamped as planned if on time): no next stance says that the robot
-  is there, which an ON switch of stabilizer_gate_node waits for.
+  shifted by as much. The last stance executed (the plan's, or the one a newer plan takes
+  over at) goes out again when reached in any case (stamped as planned if on time): no
+  next stance says that the robot is there, which an ON switch of stabilizer_gate_node
+  waits for.
 
 pik_node lost during execution (PikWatch on /pik/status: silent for `pik_status_timeout`
 s, or its cycle counter went back, i.e. a new process): streaming pauses at the current
@@ -570,6 +570,12 @@ class TrajectoryNode(Node):
             self._await_matched("plan", "not started", lambda: self._unmatched(
                 ACTIVE_STANCE_TOPIC, self.active_stance_pub, self.stance_listeners))
 
+    def _hand_stack(self, stack, what: str, not_started: str):
+        """/pik/set_stack with `stack`, returning once pik_node takes its targets
+        (_await_target_subscriptions)."""
+        self._call(self.set_stack_client, stack_request(stack))
+        self._await_target_subscriptions(stack, what, not_started)
+
     def _await_target_subscriptions(self, stack, what: str, not_started: str):
         """Return once pik_node subscribes to the target topic of every task of `stack`
         and this node's publisher there has matched a subscription (_unmatched, not
@@ -629,8 +635,7 @@ class TrajectoryNode(Node):
         # pik_node holds the first stack, and takes its targets, before the clock starts: a
         # service round trip or a discovery inside the clock (0.1-0.3 s under load) left
         # the robot that far behind at once
-        self._call(self.set_stack_client, stack_request(stack))
-        self._await_target_subscriptions(stack, "plan", "not started")
+        self._hand_stack(stack, "plan", "not started")
         sent = stack                              # the stack pik_node holds
         # built once, before the clock starts (sampling a long plan takes 0.1-0.2 s), then
         # sent again restamped
@@ -649,10 +654,8 @@ class TrajectoryNode(Node):
             try:
                 if stack != sent:
                     called_at = time.monotonic()
-                    self._call(self.set_stack_client, stack_request(stack))
-                    self._await_target_subscriptions(
-                        stack, f"transition {transition}",
-                        f"transition {transition} not started")
+                    self._hand_stack(stack, f"transition {transition}",
+                                     f"transition {transition} not started")
                     held_by_call += time.monotonic() - called_at
                     sent = stack
                 lost = self._pik.lost()
@@ -908,7 +911,7 @@ def late_reason(gate, late, paused, held_by_call) -> str:
     """Why the stance `gate` awaited was reached `late` s after its stamp, for the status:
     a wait for the robot, streaming `paused` s for a lost pik_node, or `held_by_call` s
     by the set_stack call that started the transition and the match of its target topics
-    (_await_target_subscriptions), late ticks for the rest."""
+    (_hand_stack), late ticks for the rest."""
     pause = f"streaming paused {paused:.2f} s for pik_node" if paused else ""
     if gate.waiting_since is not None:
         waited = (f"waiting {gate.waited(time.monotonic()):.2f} s for the robot to arrive "
