@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pinocchio as pin
 import pytest
-from stance_tools.bench import (GROUP_SCENARIOS, TALOS_LEVEL_STACK, bench_start,
-                                bench_targets)
+from stance_tools.bench import (GROUP_SCENARIOS, SUPPORT_SCENARIOS, TALOS_LEVEL_STACK,
+                                bench_start, bench_targets, support_solver)
 
 from stance.pik import LM_DAMPING, PIKSolver
 from stance.robot import Robot
@@ -134,3 +134,30 @@ def test_reachable_targets_converge_as_fast(talos, hierarchy):
     assert min(reach) > 0 and reach[1] <= 1.1 * reach[0]
     assert damped.task_errors["right_hand"] < 1e-6
     assert all(level.damping == pytest.approx(1e-3, rel=1e-3) for level in damped.levels)
+
+
+def test_a_support_polygon_out_of_reach_does_not_make_the_joints_chatter(talos):
+    """The support polygon 3 m ahead of the feet (`stance bench support`'s "polygon
+    ahead"): the CoM heads for it until the body is stretched on its bounds. A support
+    level has no equality row, so its lambda stayed `damping`: the base, hips, torso and
+    elbows then went back and forth at their velocity bounds every step (0.023 rad per
+    step) for good. Its shortfall now counts in lambda as a task's step target does."""
+    specs = parse_stack_yaml(TALOS_LEVEL_STACK)
+    start = bench_start(talos)
+    targets = bench_targets(talos, specs, start, SUPPORT_SCENARIOS["polygon ahead"][0])
+    solver = support_solver(talos, start, targets, DT, "support",
+                            SUPPORT_SCENARIOS["polygon ahead"][1])
+    balance = solver.task("balance")
+    solver.compute_kinematics(start)
+    outside_at_start = balance.distance_outside(talos)
+    q, steps = start, []
+    for _ in range(2 * STEPS):
+        result = solver.step(q)
+        q = result.q
+        steps.append(result.dq)
+    solver.compute_kinematics(q)
+    balance_level = next(level for level in result.levels if "balance" in level.tasks)
+    assert chatter(np.array(steps)) < 2e-3
+    assert balance_level.damping > 1.0          # lambda of a shortfall of metres
+    assert balance.distance_outside(talos) < outside_at_start - 0.5    # heading for it
+    assert max(result.task_errors["left_foot"], result.task_errors["right_foot"]) < 1e-3

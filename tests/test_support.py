@@ -243,10 +243,13 @@ def test_support_needs_the_qp_hierarchy(talos):
 
 @pytest.mark.parametrize("ahead", [1.0, 1000.0])
 def test_a_polygon_out_of_reach_leaves_the_levels_below_to_their_hot_starts(talos, ahead):
-    """The support level cannot keep its rows (the polygon `ahead` m in front, the CoM
-    at its speed limits toward it): the rows it misses become equalities of the levels
-    below, which then solve from their hot starts. Kept as exactly tight inequalities,
-    they left those levels degenerate, and ProxSuite solved 1.6-2 of them per step."""
+    """The support level cannot keep its rows (the polygon `ahead` m in front): the rows
+    it misses become equalities of the levels below, which then solve from their hot
+    starts. Kept as exactly tight inequalities, they left those levels degenerate, and
+    ProxSuite solved 1.6-2 of them per step. Its Levenberg-Marquardt damping grows with
+    its shortfall, as a task's with its step target (tests/test_lm_damping.py): the CoM
+    heads for a polygon 1 m ahead, and holds where it is for one 1000 m ahead, as hands
+    out of reach do. Either way the level reports the CoM's distance outside, not met."""
     q = bench_start(talos)
     solver = PIKSolver(talos, hierarchy="qp", dt=0.002)
     solver.set_stack(parse_stack_yaml(SUPPORT_STACK), q)
@@ -259,8 +262,14 @@ def test_a_polygon_out_of_reach_leaves_the_levels_below_to_their_hot_starts(talo
         q = result.q
         distances.append(result.task_errors["balance"])
     assert (solver.hierarchy.qp_solves - solves) / 200 < 0.5
-    assert distances[-1] < distances[100] - 0.05   # the CoM heads for the polygon
+    if ahead < 10.0:
+        assert distances[-1] < distances[100] - 0.05   # the CoM heads for the polygon
+    else:
+        assert abs(distances[-1] - distances[100]) < 0.01
     assert result.levels[0].condition == "met"      # the feet hold
+    balance = result.levels[1]
+    assert balance.tasks == ["balance"] and balance.condition != "met"
+    assert balance.residual_norm == pytest.approx(distances[-1], rel=1e-12)
 
 
 def test_a_support_task_sent_again_keeps_its_polygon(talos):

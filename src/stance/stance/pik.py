@@ -5,13 +5,14 @@ One IK step from configuration q:
   2. the enabled tasks, grouped by priority, give one Level each (rows scaled by
      sqrt(weight), targets = the tasks' capped steps); each level's damped least squares
      lambda is lambda_k^2 = damping^2 + lm_damping |e_k|^2, e_k the level's target rows of
-     the tasks that curve (all but posture): Levenberg-Marquardt damping as Pink's
+     the tasks that curve (all but posture) and the shortfalls of its inequality rows (a
+     support polygon's edges the CoM is outside of): Levenberg-Marquardt damping as Pink's
      lm_damping (Sugihara, "Solvability-unconcerned inverse kinematics by the
      Levenberg-Marquardt method", 2011), large while a target is far or out of reach, so
      an unreachable target does not make the joints chatter, and `damping` alone once
-     the targets are reached. The level's rows and targets are scaled by damping /
-     lambda_k, so the hierarchy's one lambda acts as lambda_k on that level alone, and no
-     level's damping depends on the levels below it;
+     the targets are reached. The level's rows and targets, and its inequality rows and
+     their room, are scaled by damping / lambda_k, so the hierarchy's one lambda acts as
+     lambda_k on that level alone, and no level's damping depends on the levels below it;
   3. clamping loop: solve the hierarchy; ask every limit model, through the strategy, which
      of its free DoFs must be damped or clamped; fix them as highest-priority equalities;
      repeat until none is new (the strategy may add lowest-priority levels, e.g. GPM);
@@ -272,13 +273,13 @@ class PIKSolver:
         self.compute_kinematics(q)
         jacobian, target, error = self._fill_levels(q)
         offsets = self._layout.offsets
-        level_scale = self._lm_scale(jacobian, target)
+        inequalities = self._support_inequalities()
+        level_scale = self._lm_scale(jacobian, target, inequalities)
 
         extra = self.strategy.extra_levels(self, q)
         if extra:
             jacobian, target, offsets = _append_levels(jacobian, target, offsets, extra)
         bounds = self._dq_bounds(q) if self._uses_bounds else None
-        inequalities = self._support_inequalities()
         nv = robot.model.nv
         fixed = np.zeros(nv, dtype=bool)
         fixed[self._locked_v] = True        # at 0, like a clamped joint, from the start
@@ -298,6 +299,8 @@ class PIKSolver:
         dq, scale = self._within_velocity_limits(solution, fixed_dq)
         step_residuals = solution.step_residuals if scale == 1.0 else \
             _level_residuals(jacobian, target, offsets, dq)
+        if inequalities is not None:
+            step_residuals = _with_shortfalls(step_residuals, inequalities, dq)
         q_next = pin.integrate(robot.model, q, dq)
         if self.strategy.enforces_limits:
             for model in self.limit_models:
@@ -306,7 +309,7 @@ class PIKSolver:
                 bounds if bounds is not None else partial(self._dq_bounds, q.copy()),
                 None if scale == 1.0 else np.array(solution.step_residuals, dtype=float))
         levels, task_errors = self._reports(q, error, step_residuals, jacobian, target,
-                                            level_scale, held)
+                                            level_scale, held, inequalities)
         binding = solution.binding
         if binding and bounds is not None:
             binding = (self, binding, solution.dq, fixed, fixed_dq, h)
@@ -321,14 +324,24 @@ class PIKSolver:
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
                           decide_binding=binding)
 
-    def _lm_scale(self, jacobian, target) -> np.ndarray:
+    def _lm_scale(self, jacobian, target, inequalities) -> np.ndarray:
         """Each level's factor damping / lambda_k (module docstring, step 2; 1 without LM
-        damping), its rows of the stacked Jacobian and target scaled by it in place."""
+        damping), its rows of the stacked Jacobian and target, and its inequality rows and
+        their room (inequalities: the support tasks', or None), scaled by it in place."""
         layout = self._layout
         scale = layout.level_scale
         if self.lm_damping:
+            shortfall = _NO_SHORTFALL
+            if inequalities is not None:
+                shortfall = np.zeros(len(scale))
+                np.add.at(shortfall, inequalities.level,
+                          np.minimum(inequalities.room, 0.0) ** 2)
             _lm_scale_levels(jacobian, target, layout.offsets, layout.curved_rows,
-                             self.damping, self.lm_damping, scale)
+                             self.damping, self.lm_damping, shortfall, scale)
+            if inequalities is not None:
+                row_scale = scale[inequalities.level]
+                inequalities.rows[:] *= row_scale[:, None]
+                inequalities.room[:] *= row_scale
         return scale
 
     def _binding_names(self, names, dq, fixed, fixed_dq, h) -> list:
@@ -515,36 +528,47 @@ class PIKSolver:
                        layout.row_scale, target)
         return jacobian, target, error
 
-    def _reports(self, q, error, step_residuals, jacobian, target, level_scale, held):
+    def _reports(self, q, error, step_residuals, jacobian, target, level_scale, held,
+                 inequalities):
         """LevelReports and task errors; step_residuals (of the rows as solved, each level
-        scaled by level_scale) reported in task units; held: _level_condition's."""
+        scaled by level_scale) reported in task units; held: _level_condition's;
+        inequalities: the support tasks' (scaled as solved), or None. A support task's
+        error is its CoM's distance outside (m), part of its level's residual."""
         layout = self._layout
         norms = layout.error_norms
         _error_norms(error, layout.task_starts, layout.offsets, layout.row_scale, norms)
         norms = norms.tolist()  # Python floats without one call per value
         task_count = len(layout.task_names)
         task_errors = dict(zip(layout.task_names, norms[:task_count]))
+        level_norms = norms[task_count:]
+        for task, level in layout.support_tasks:    # an inequality: its distance outside
+            task_errors[task.name] = task.distance_outside(self.robot)
+            level_norms[level] = math.hypot(level_norms[level],
+                                            math.sqrt(task.weight) * task_errors[task.name])
         solved = np.asarray(step_residuals, dtype=float)[:len(level_scale)]
-        levels = list(map(LevelReport, layout.priorities, layout.level_tasks,
-                          norms[task_count:], (solved / level_scale).tolist(),
+        levels = list(map(LevelReport, layout.priorities, layout.level_tasks, level_norms,
+                          (solved / level_scale).tolist(),
                           (self.damping / level_scale).tolist(),
-                          self._conditions(jacobian, target, solved.tolist(), held)))
+                          self._conditions(jacobian, target, solved.tolist(), held,
+                                           inequalities)))
         for task in layout.disabled_tasks:
             _, task_error = task.jacobian_and_error(self.robot, q)
             task_errors[task.name] = task.distance_outside(self.robot) \
                 if isinstance(task, SupportTask) else float(np.linalg.norm(task_error))
-        for task, _ in layout.support_tasks:    # an inequality: its distance outside
-            task_errors[task.name] = task.distance_outside(self.robot)
         return levels, task_errors
 
-    def _conditions(self, jacobian, target, step_residuals, held) -> list:
+    def _conditions(self, jacobian, target, step_residuals, held, inequalities) -> list:
         """LevelReport.decide_condition of each level with tasks (the strategy's extra
         levels, last, are not reported): _level_condition's arguments, on one copy of the
         step's rows shared by the levels (the solver's arrays are reused next step; a
-        step whose report nobody reads pays the copies only)."""
+        step whose report nobody reads pays the copies only), each level's violated
+        inequality rows among them (_with_violated_rows)."""
         offsets = self._layout.offsets
-        problem = (jacobian[:offsets[-1]].copy(), target[:offsets[-1]].copy(), offsets,
-                   self.damping ** 2, self._layout.level_scale.copy(), held)
+        rows, wanted = jacobian[:offsets[-1]].copy(), target[:offsets[-1]].copy()
+        if inequalities is not None:
+            rows, wanted, offsets = _with_violated_rows(rows, wanted, offsets, inequalities)
+        problem = (rows, wanted, offsets, self.damping ** 2,
+                   self._layout.level_scale.copy(), held)
         return [(problem, level, residual)
                 for level, residual in enumerate(step_residuals[:len(offsets) - 1])]
 
@@ -781,12 +805,14 @@ def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
 
 
 @numba.njit(cache=True)
-def _lm_scale_levels(jacobian, target, offsets, curved, damping, lm_damping, scale):
+def _lm_scale_levels(jacobian, target, offsets, curved, damping, lm_damping, shortfall,
+                     scale):
     """scale[k] = damping / lambda_k, lambda_k^2 = damping^2 + lm_damping |e_k|^2 with e_k
-    level k's target rows where `curved` (PIKSolver module docstring, step 2); level k's
-    rows of jacobian and target multiplied by it (all in place)."""
+    level k's target rows where `curved` and the shortfalls of its inequality rows
+    (shortfall[k]: the sum of their squares; empty: none; PIKSolver module docstring, step
+    2); level k's rows of jacobian and target multiplied by it (all in place)."""
     for level in range(len(offsets) - 1):
-        square = 0.0
+        square = shortfall[level] if len(shortfall) else 0.0
         for row in range(offsets[level], offsets[level + 1]):
             if curved[row]:
                 square += target[row] * target[row]
@@ -815,6 +841,34 @@ def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
 HIERARCHIES = ("svd", "qp")
 
 
+def _with_shortfalls(step_residuals, inequalities, dq) -> np.ndarray:
+    """Each level's step residual with the shortfall its own inequality rows have after
+    dq, max(0, rows dq - room) (as solved: scaled by the level's LM factor), added in
+    quadrature: a support level's CoM left outside its polygon is not met."""
+    residuals = np.array(step_residuals, dtype=float)
+    shortfalls = np.maximum(inequalities.rows @ dq - inequalities.room, 0.0)
+    squares = np.zeros(len(residuals))
+    np.add.at(squares, inequalities.level, shortfalls ** 2)
+    return np.sqrt(residuals ** 2 + squares)
+
+
+def _with_violated_rows(jacobian, target, offsets, inequalities) -> tuple:
+    """(jacobian, target, offsets) with each level's violated inequality rows (room < 0:
+    the CoM outside an edge, asked back by -room this step) among its rows, as the
+    equalities rows dq = room: _level_condition then judges a support level by what its
+    step asks, as any other level."""
+    violated = inequalities.room < 0.0
+    rows, targets, sizes = [], [], []
+    for level in range(len(offsets) - 1):
+        own = violated & (inequalities.level == level)
+        rows += [jacobian[offsets[level]:offsets[level + 1]], inequalities.rows[own]]
+        targets += [target[offsets[level]:offsets[level + 1]], inequalities.room[own]]
+        sizes.append(offsets[level + 1] - offsets[level] + int(own.sum()))
+    return (np.vstack(rows), np.concatenate(targets),
+            np.concatenate([[0], np.cumsum(sizes)]).astype(offsets.dtype))
+
+
+_NO_SHORTFALL = np.zeros(0)     # _lm_scale_levels' shortfalls without inequality rows
 # _clamping_loop's cascade_state (QPHierarchy.cascade_state) for a hierarchy without cascades
 _NO_CASCADE_STATE = empty_cascade_state(0, 0, np.zeros(1, dtype=np.int64))
 
