@@ -123,6 +123,23 @@ def test_a_violated_row_of_a_level_without_equalities_is_met():
     assert solution.binding == ["wall"]
 
 
+def test_a_row_violation_weighs_its_weight_squared_against_the_damping():
+    """One level of only a row 2 units out, weighted by w: min w^2 (t + 2)^2 + lambda^2
+    (|y|^2 + t^2) over t = rows y (the slack on the row), so t = -2 w^2 / (w^2 + 1.5
+    lambda^2) (|rows|^2 = 2); the level below keeps it there. PIKSolver weights a support
+    level's rows by its Levenberg-Marquardt factor."""
+    rows = np.array([[1.0, 1.0, 0.0]])
+    jacobian = np.vstack([np.zeros((0, 3)), np.eye(3)])
+    for weight in (1.0, DAMPING, 0.1 * DAMPING):
+        inequalities = Inequalities(rows, np.array([-2.0]), np.array([0]), ["wall"],
+                                    np.array([weight]))
+        solution = QPHierarchy(damping=DAMPING).solve_stacked(
+            jacobian, np.array([5.0, 0.0, 1.0]), np.array([0, 0, 3]),
+            inequalities=inequalities)
+        expected = -2.0 * weight ** 2 / (weight ** 2 + 1.5 * DAMPING ** 2)
+        assert rows @ solution.dq == pytest.approx([expected], rel=1e-6)
+
+
 def test_contradictory_rows_and_tasks_return_a_solution_naming_the_rows():
     """Level 0 wants dq_0 = 1, its row dq_0 <= 0: met halfway (same weight); the level
     below must not push further; the row is named binding."""
@@ -143,6 +160,10 @@ def test_contradictory_rows_and_tasks_return_a_solution_naming_the_rows():
     (Inequalities(np.ones((1, 3)), np.zeros(1), np.zeros(1, dtype=np.int64), ["a"]),
      "rows"),
     (Inequalities(np.ones((1, 2)), np.zeros(1), np.array([3]), ["a"]), "levels"),
+    (Inequalities(np.ones((1, 2)), np.zeros(1), np.array([0]), ["a"], np.zeros(1)),
+     "weight"),
+    (Inequalities(np.ones((1, 2)), np.zeros(1), np.array([0]), ["a"], np.ones(2)),
+     "weight"),
 ])
 def test_malformed_inequalities_are_refused(inequalities, message):
     with pytest.raises(ValueError, match=message):

@@ -10,9 +10,10 @@ One IK step from configuration q:
      lm_damping (Sugihara, "Solvability-unconcerned inverse kinematics by the
      Levenberg-Marquardt method", 2011), large while a target is far or out of reach, so
      an unreachable target does not make the joints chatter, and `damping` alone once
-     the targets are reached. The level's rows and targets, and its inequality rows and
-     their room, are scaled by damping / lambda_k, so the hierarchy's one lambda acts as
-     lambda_k on that level alone, and no level's damping depends on the levels below it;
+     the targets are reached. The level's rows and targets, and the violation of its
+     inequality rows in its objective (Inequalities.weight), are scaled by damping /
+     lambda_k, so the hierarchy's one lambda acts as lambda_k on that level alone, and no
+     level's damping depends on the levels below it;
   3. clamping loop: solve the hierarchy; ask every limit model, through the strategy, which
      of its free DoFs must be damped or clamped; fix them as highest-priority equalities;
      repeat until none is new (the strategy may add lowest-priority levels, e.g. GPM);
@@ -275,6 +276,8 @@ class PIKSolver:
         offsets = self._layout.offsets
         inequalities = self._support_inequalities()
         level_scale = self._lm_scale(jacobian, target, inequalities)
+        if inequalities is not None:
+            inequalities = inequalities._replace(weight=level_scale[inequalities.level])
 
         extra = self.strategy.extra_levels(self, q)
         if extra:
@@ -299,15 +302,18 @@ class PIKSolver:
         dq, scale = self._within_velocity_limits(solution, fixed_dq)
         step_residuals = solution.step_residuals if scale == 1.0 else \
             _level_residuals(jacobian, target, offsets, dq)
+        unsaturated = None if scale == 1.0 else solution.step_residuals
         if inequalities is not None:
             step_residuals = _with_shortfalls(step_residuals, inequalities, dq)
+            if unsaturated is not None:
+                unsaturated = _with_shortfalls(unsaturated, inequalities, solution.dq)
         q_next = pin.integrate(robot.model, q, dq)
         if self.strategy.enforces_limits:
             for model in self.limit_models:
                 model.keep_inside(q, q_next)
         held = (fixed.copy(), fixed_dq.copy(),
                 bounds if bounds is not None else partial(self._dq_bounds, q.copy()),
-                None if scale == 1.0 else np.array(solution.step_residuals, dtype=float))
+                None if unsaturated is None else np.array(unsaturated, dtype=float))
         levels, task_errors = self._reports(q, error, step_residuals, jacobian, target,
                                             level_scale, held, inequalities)
         binding = solution.binding
@@ -326,8 +332,8 @@ class PIKSolver:
 
     def _lm_scale(self, jacobian, target, inequalities) -> np.ndarray:
         """Each level's factor damping / lambda_k (module docstring, step 2; 1 without LM
-        damping), its rows of the stacked Jacobian and target, and its inequality rows and
-        their room (inequalities: the support tasks', or None), scaled by it in place."""
+        damping), its rows of the stacked Jacobian and target scaled by it in place;
+        inequalities: the support tasks' (their shortfalls count in lambda_k), or None."""
         layout = self._layout
         scale = layout.level_scale
         if self.lm_damping:
@@ -338,10 +344,6 @@ class PIKSolver:
                           np.minimum(inequalities.room, 0.0) ** 2)
             _lm_scale_levels(jacobian, target, layout.offsets, layout.curved_rows,
                              self.damping, self.lm_damping, shortfall, scale)
-            if inequalities is not None:
-                row_scale = scale[inequalities.level]
-                inequalities.rows[:] *= row_scale[:, None]
-                inequalities.room[:] *= row_scale
         return scale
 
     def _binding_names(self, names, dq, fixed, fixed_dq, h) -> list:
@@ -532,7 +534,7 @@ class PIKSolver:
                  inequalities):
         """LevelReports and task errors; step_residuals (of the rows as solved, each level
         scaled by level_scale) reported in task units; held: _level_condition's;
-        inequalities: the support tasks' (scaled as solved), or None. A support task's
+        inequalities: the support tasks' (weighted as solved), or None. A support task's
         error is its CoM's distance outside (m), part of its level's residual."""
         layout = self._layout
         norms = layout.error_norms
@@ -543,8 +545,7 @@ class PIKSolver:
         level_norms = norms[task_count:]
         for task, level in layout.support_tasks:    # an inequality: its distance outside
             task_errors[task.name] = task.distance_outside(self.robot)
-            level_norms[level] = math.hypot(level_norms[level],
-                                            math.sqrt(task.weight) * task_errors[task.name])
+            level_norms[level] = math.hypot(level_norms[level], task_errors[task.name])
         solved = np.asarray(step_residuals, dtype=float)[:len(level_scale)]
         levels = list(map(LevelReport, layout.priorities, layout.level_tasks, level_norms,
                           (solved / level_scale).tolist(),
@@ -842,11 +843,13 @@ HIERARCHIES = ("svd", "qp")
 
 
 def _with_shortfalls(step_residuals, inequalities, dq) -> np.ndarray:
-    """Each level's step residual with the shortfall its own inequality rows have after
-    dq, max(0, rows dq - room) (as solved: scaled by the level's LM factor), added in
-    quadrature: a support level's CoM left outside its polygon is not met."""
+    """Each level's step residual (of its rows as solved: scaled by its LM factor) with
+    the shortfall its own inequality rows have after dq, max(0, rows dq - room) times
+    their weight (the same factor), added in quadrature: a support level's CoM left
+    outside its polygon is not met."""
     residuals = np.array(step_residuals, dtype=float)
-    shortfalls = np.maximum(inequalities.rows @ dq - inequalities.room, 0.0)
+    shortfalls = _row_weight(inequalities) * np.maximum(
+        inequalities.rows @ dq - inequalities.room, 0.0)
     squares = np.zeros(len(residuals))
     np.add.at(squares, inequalities.level, shortfalls ** 2)
     return np.sqrt(residuals ** 2 + squares)
@@ -855,17 +858,27 @@ def _with_shortfalls(step_residuals, inequalities, dq) -> np.ndarray:
 def _with_violated_rows(jacobian, target, offsets, inequalities) -> tuple:
     """(jacobian, target, offsets) with each level's violated inequality rows (room < 0:
     the CoM outside an edge, asked back by -room this step) among its rows, as the
-    equalities rows dq = room: _level_condition then judges a support level by what its
-    step asks, as any other level."""
+    equalities rows dq = room times their weight (scaled as the level's rows are):
+    _level_condition then judges a support level by what its step asks, as any other."""
     violated = inequalities.room < 0.0
+    weight = _row_weight(inequalities)
+    weighted_rows = weight[:, None] * inequalities.rows
+    weighted_room = weight * inequalities.room
     rows, targets, sizes = [], [], []
     for level in range(len(offsets) - 1):
         own = violated & (inequalities.level == level)
-        rows += [jacobian[offsets[level]:offsets[level + 1]], inequalities.rows[own]]
-        targets += [target[offsets[level]:offsets[level + 1]], inequalities.room[own]]
+        rows += [jacobian[offsets[level]:offsets[level + 1]], weighted_rows[own]]
+        targets += [target[offsets[level]:offsets[level + 1]], weighted_room[own]]
         sizes.append(offsets[level + 1] - offsets[level] + int(own.sum()))
     return (np.vstack(rows), np.concatenate(targets),
             np.concatenate([[0], np.cumsum(sizes)]).astype(offsets.dtype))
+
+
+def _row_weight(inequalities) -> np.ndarray:
+    """Inequalities.weight, ones where it is None."""
+    if inequalities.weight is None:
+        return np.ones(len(inequalities.room))
+    return inequalities.weight
 
 
 _NO_SHORTFALL = np.zeros(0)     # _lm_scale_levels' shortfalls without inequality rows

@@ -129,14 +129,16 @@ def robot_velocity_steps(robot, dt: float | None) -> np.ndarray:
 class Inequalities(NamedTuple):
     """Rows of the levels' inequalities rows @ dq <= room (task units, e.g. m), each
     declared by one level: that level meets it as well as it can (the square of its
-    violation joins the level's objective), and every level below keeps it as that level
-    left it (no further out). Where the levels' damped least squares steps keep every row
-    from its level on, they are the answer (QPHierarchy._row_cascade)."""
+    violation, times weight^2, joins the level's objective), and every level below keeps it
+    as that level left it (no further out). Where the levels' damped least squares steps
+    keep every row from its level on, they are the answer (QPHierarchy._row_cascade)."""
 
     rows: np.ndarray     # m x nv
     room: np.ndarray     # m
     level: np.ndarray    # m, int64: the level that declares the row
     labels: list         # m names for the binding report, e.g. "balance edge 0"
+    weight: np.ndarray | None = None   # m, > 0: the violation's weight in its level's
+    #                                    objective (None: 1; PIKSolver: the level's LM factor)
 
 
 class KeptActiveSets(NamedTuple):
@@ -302,11 +304,13 @@ class QPHierarchy:
         sides, known = kept.sides[slot], kept.known[slot]
         if not self.hot_start:
             known[:] = False
+        weight = np.ones(len(room)) if inequalities.weight is None else \
+            np.asarray(inequalities.weight, dtype=float)
         level, given_step = first, np.zeros(0)
         while True:
             level, basis, problem = _row_levels(
                 jacobian, target, offsets, level, dq, basis, bounded, lower, upper,
-                inequalities.rows, room, row_level, sides, known, enforced,
+                inequalities.rows, room, weight, row_level, sides, known, enforced,
                 residuals, self._counters, self.damping, self.rank_tolerance, given_step)
             if level == level_count:
                 break
@@ -521,6 +525,10 @@ def _check_inequalities(inequalities, nv: int, level_count: int) -> None:
                          "and one label each")
     if not (np.all(np.isfinite(rows)) and np.all(np.isfinite(room))):
         raise ValueError("inequalities contain NaN or infinite values")
+    weight = inequalities.weight
+    if weight is not None and (np.shape(weight) != (count,) or
+                               not np.all(np.isfinite(weight) & (weight > 0.0))):
+        raise ValueError(f"inequalities: {count} rows need one finite weight > 0 each")
     if np.any((level < 0) | (level >= level_count)):
         raise ValueError(f"inequality levels must be in 0..{level_count - 1}")
 
@@ -668,13 +676,13 @@ def _cascade_levels(jacobian, target, offsets, level, dq, basis, bounded, lower,
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _row_levels(jacobian, target, offsets, level, dq, basis, bounded, lower, upper, rows,
-                room, row_level, sides, known, enforced, residuals, counters, damping,
+                room, weight, row_level, sides, known, enforced, residuals, counters, damping,
                 rank_tolerance, given_step):
     """QPHierarchy._row_cascade's levels from `level` on, dq, room (own rows relaxed to
     what their level left), the kept sides (levels x (nv + rows): +1 upper, -1 lower, 0)
     and known flags, enforced, residuals and counters updated in place, until a level's
     hot start fails. Per level, variables y and a slack w per own row (w = shortfall + w',
-    0 feasible) minimize |P y - r|^2 + |w|^2 + lambda^2 (|y|^2 + |w'|^2) subject to the
+    0 feasible) minimize |P y - r|^2 + |weight w|^2 + lambda^2 (|y|^2 + |w'|^2) subject to the
     DoF bounds, the rows of the levels above within their room and the own rows minus w
     within theirs: the damped least squares step where it keeps them all (DampedHierarchy's
     step), else the polish from the kept active set. given_step: `level`'s step when
@@ -697,7 +705,8 @@ def _row_levels(jacobian, target, offsets, level, dq, basis, bounded, lower, upp
             projected = _sparse_rows_product(equalities, basis) if equalities.shape[0] > 0 \
                 else np.zeros((0, variables))
             problem = _row_level_problem(projected, wanted - _times(equalities, dq), basis,
-                                         dq, bounded, lower, upper, rows, room, row_level,
+                                         dq, bounded, lower, upper, rows, room, weight,
+                                         row_level,
                                          level)
             design, goal, constraint, low, high, dofs, declared = problem
             step = _damped_least_squares(design, goal, damping * damping) \
@@ -756,7 +765,7 @@ def _row_levels(jacobian, target, offsets, level, dq, basis, bounded, lower, upp
 
 @numba.njit(cache=True, fastmath=REORDERING)
 def _row_level_problem(projected, residual, basis, dq, bounded, lower, upper, rows, room,
-                       row_level, level):
+                       weight, row_level, level):
     """One level of _row_levels as (design, goal, constraint, low, high, dofs, declared):
     minimize |design x - goal|^2 + lambda^2 |x|^2, x = (y, w'), subject to low <=
     constraint x <= high; constraint rows: the movable bounded DoFs (dofs), then the rows
@@ -789,8 +798,8 @@ def _row_level_problem(projected, residual, basis, dq, bounded, lower, upper, ro
         high[position] = max(left, 0.0)
         if row_level[row] == level:
             constraint[position, variables + slack] = -1.0
-            design[equalities + slack, variables + slack] = 1.0
-            goal[equalities + slack] = -max(-left, 0.0)
+            design[equalities + slack, variables + slack] = weight[row]
+            goal[equalities + slack] = -weight[row] * max(-left, 0.0)
             slack += 1
     return design, goal, constraint, low, high, dofs, declared
 
