@@ -848,7 +848,7 @@ def _with_shortfalls(step_residuals, inequalities, dq) -> np.ndarray:
     their weight (the same factor), added in quadrature: a support level's CoM left
     outside its polygon is not met."""
     residuals = np.array(step_residuals, dtype=float)
-    shortfalls = _row_weight(inequalities) * np.maximum(
+    shortfalls = inequalities.row_weights() * np.maximum(
         inequalities.rows @ dq - inequalities.room, 0.0)
     squares = np.zeros(len(residuals))
     np.add.at(squares, inequalities.level, shortfalls ** 2)
@@ -857,11 +857,11 @@ def _with_shortfalls(step_residuals, inequalities, dq) -> np.ndarray:
 
 def _with_violated_rows(jacobian, target, offsets, inequalities) -> tuple:
     """(jacobian, target, offsets) with each level's violated inequality rows (room < 0:
-    the CoM outside an edge, asked back by -room this step) among its rows, as the
-    equalities rows dq = room times their weight (scaled as the level's rows are):
+    the CoM outside an edge, asked back by -room this step) among its rows, as equalities
+    rows dq = room times their weight (scaled as the level's rows are):
     _level_condition then judges a support level by what its step asks, as any other."""
     violated = inequalities.room < 0.0
-    weight = _row_weight(inequalities)
+    weight = inequalities.row_weights()
     weighted_rows = weight[:, None] * inequalities.rows
     weighted_room = weight * inequalities.room
     rows, targets, sizes = [], [], []
@@ -872,13 +872,6 @@ def _with_violated_rows(jacobian, target, offsets, inequalities) -> tuple:
         sizes.append(offsets[level + 1] - offsets[level] + int(own.sum()))
     return (np.vstack(rows), np.concatenate(targets),
             np.concatenate([[0], np.cumsum(sizes)]).astype(offsets.dtype))
-
-
-def _row_weight(inequalities) -> np.ndarray:
-    """Inequalities.weight, ones where it is None."""
-    if inequalities.weight is None:
-        return np.ones(len(inequalities.room))
-    return inequalities.weight
 
 
 _NO_SHORTFALL = np.zeros(0)     # _lm_scale_levels' shortfalls without inequality rows

@@ -140,6 +140,12 @@ class Inequalities(NamedTuple):
     weight: np.ndarray | None = None   # m, > 0: the violation's weight in its level's
     #                                    objective (None: 1; PIKSolver: the level's LM factor)
 
+    def row_weights(self) -> np.ndarray:
+        """weight, ones where it is None."""
+        if self.weight is None:
+            return np.ones(len(self.room))
+        return np.asarray(self.weight, dtype=float)
+
 
 class KeptActiveSets(NamedTuple):
     """The active sets cascades ended with, per level, for up to MAX_KEPT_SETS keys (slots):
@@ -304,8 +310,7 @@ class QPHierarchy:
         sides, known = kept.sides[slot], kept.known[slot]
         if not self.hot_start:
             known[:] = False
-        weight = np.ones(len(room)) if inequalities.weight is None else \
-            np.asarray(inequalities.weight, dtype=float)
+        weight = inequalities.row_weights()
         level, given_step = first, np.zeros(0)
         while True:
             level, basis, problem = _row_levels(
@@ -706,8 +711,7 @@ def _row_levels(jacobian, target, offsets, level, dq, basis, bounded, lower, upp
                 else np.zeros((0, variables))
             problem = _row_level_problem(projected, wanted - _times(equalities, dq), basis,
                                          dq, bounded, lower, upper, rows, room, weight,
-                                         row_level,
-                                         level)
+                                         row_level, level)
             design, goal, constraint, low, high, dofs, declared = problem
             step = _damped_least_squares(design, goal, damping * damping) \
                 if design.shape[0] > 0 else np.zeros(design.shape[1])
