@@ -5,15 +5,15 @@ One IK step from configuration q:
   2. the enabled tasks, grouped by priority, give one Level each (rows scaled by
      sqrt(weight), targets = the tasks' capped steps); each level's damped least squares
      lambda is lambda_k^2 = damping^2 + lm_damping |e_k|^2, e_k the level's target rows of
-     the tasks that curve (all but posture) and the shortfalls of its inequality rows (a
-     support polygon's edges the CoM is outside of): Levenberg-Marquardt damping as Pink's
-     lm_damping (Sugihara, "Solvability-unconcerned inverse kinematics by the
-     Levenberg-Marquardt method", 2011), large while a target is far or out of reach, so
-     an unreachable target does not make the joints chatter, and `damping` alone once
-     the targets are reached. The level's rows and targets, and the violation of its
-     inequality rows in its objective (Inequalities.weight), are scaled by damping /
-     lambda_k, so the hierarchy's one lambda acts as lambda_k on that level alone, and no
-     level's damping depends on the levels below it;
+     the tasks that curve (all but posture; a CoM task's uncapped, gain x error) and the
+     shortfalls of its inequality rows (a support polygon's edges the CoM is outside of):
+     Levenberg-Marquardt damping as Pink's lm_damping (Sugihara, "Solvability-unconcerned
+     inverse kinematics by the Levenberg-Marquardt method", 2011), large while a target is
+     far or out of reach, so an unreachable target does not make the joints chatter, and
+     `damping` alone once the targets are reached. The level's rows and targets, and the
+     violation of its inequality rows in its objective (Inequalities.weight), are scaled
+     by damping / lambda_k, so the hierarchy's one lambda acts as lambda_k on that level
+     alone, and no level's damping depends on the levels below it;
   3. clamping loop: solve the hierarchy; ask every limit model, through the strategy, which
      of its free DoFs must be damped or clamped; fix them as highest-priority equalities;
      repeat until none is new (the strategy may add lowest-priority levels, e.g. GPM);
@@ -52,6 +52,12 @@ from .tasks import (ComTask, FrameTask, FrameTaskBatch, PostureTask, SupportTask
                     capped_steps, make_task, step_cap_groups)
 
 
+# What Levenberg-Marquardt damping counts of a task's rows (PIKSolver module docstring,
+# step 2): nothing (a posture: it does not curve), the capped step target, or gain x error
+# uncapped (the CoM: capped at ComTask.max_step, a target out of reach left a 2-row level
+# lambda 0.2, and the whole body swung at its velocity bounds around its farthest reach,
+# as with a support polygon out of reach)
+LM_NONE, LM_STEP, LM_ERROR = 0, 1, 2
 MET_RELATIVE = 1e-3   # a level whose step residual is below this x its step is met,
 MET_ABSOLUTE = 1e-12  # or below this (m, rad): rounding, on a level already on target
 LM_DAMPING = 100.0    # lm_damping: Talos' hands out of reach hold still, reached ones
@@ -127,7 +133,7 @@ class _Layout:
     row_group: np.ndarray       # step cap group per row (Task.step_caps)
     group_cap: np.ndarray       # norm cap per group (task units per step)
     error_norms: np.ndarray     # filled per step: |e| per task, then |sqrt(w) e| per level
-    curved_rows: np.ndarray     # rows of the tasks that curve (not posture): LM damping
+    lm_rows: np.ndarray         # per row, what LM damping counts (LM_NONE, LM_STEP, LM_ERROR)
     level_scale: np.ndarray     # filled per step: damping / lambda per level (LM damping)
     support_tasks: list         # (enabled SupportTask, its level index): inequality rows
 
@@ -342,8 +348,9 @@ class PIKSolver:
                 shortfall = np.zeros(len(scale))
                 np.add.at(shortfall, inequalities.level,
                           np.minimum(inequalities.room, 0.0) ** 2)
-            _lm_scale_levels(jacobian, target, layout.offsets, layout.curved_rows,
-                             self.damping, self.lm_damping, shortfall, scale)
+            _lm_scale_levels(jacobian, target, self._error, layout.row_gain,
+                             layout.row_scale, layout.offsets, layout.lm_rows, self.damping,
+                             self.lm_damping, shortfall, scale)
         return scale
 
     def _binding_names(self, names, dq, fixed, fixed_dq, h) -> list:
@@ -486,7 +493,7 @@ class PIKSolver:
         error = self._error = np.zeros(row_count)
         self._target = np.zeros(row_count)
         others, priorities, level_tasks, offsets, starts, scales = [], [], [], [0], [], []
-        gains, support, curved = [], [], []
+        gains, support, lm_counts = [], [], []
         row = 0
         for task in enabled:
             if not priorities or priorities[-1] != task.priority:
@@ -504,7 +511,7 @@ class PIKSolver:
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
-            curved.extend([not isinstance(task, PostureTask)] * task.dimension)
+            lm_counts.extend([_lm_counts(task)] * task.dimension)
             row += task.dimension
         if priorities:
             offsets.append(row)
@@ -516,7 +523,7 @@ class PIKSolver:
                        others, priorities, level_tasks, np.array(offsets, dtype=np.int64),
                        np.array(starts, dtype=np.int64), np.array(scales), np.array(gains),
                        *step_cap_groups(enabled), np.zeros(len(enabled) + len(priorities)),
-                       np.array(curved, dtype=bool), np.ones(len(priorities)), support)
+                       np.array(lm_counts, dtype=np.int8), np.ones(len(priorities)), support)
 
     def _fill_levels(self, q):
         """Write every enabled task's rows into the stacked Jacobian, error and target
@@ -806,17 +813,21 @@ def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
 
 
 @numba.njit(cache=True)
-def _lm_scale_levels(jacobian, target, offsets, curved, damping, lm_damping, shortfall,
-                     scale):
+def _lm_scale_levels(jacobian, target, error, gain, row_scale, offsets, counted, damping,
+                     lm_damping, shortfall, scale):
     """scale[k] = damping / lambda_k, lambda_k^2 = damping^2 + lm_damping |e_k|^2 with e_k
-    level k's target rows where `curved` and the shortfalls of its inequality rows
-    (shortfall[k]: the sum of their squares; empty: none; PIKSolver module docstring, step
-    2); level k's rows of jacobian and target multiplied by it (all in place)."""
+    level k's rows as `counted` says (LM_STEP: the target, LM_ERROR: sqrt(weight) x gain x
+    error, uncapped) and the shortfalls of its inequality rows (shortfall[k]: the sum of
+    their squares; empty: none; PIKSolver module docstring, step 2); level k's rows of
+    jacobian and target multiplied by it (all in place)."""
     for level in range(len(offsets) - 1):
         square = shortfall[level] if len(shortfall) else 0.0
         for row in range(offsets[level], offsets[level + 1]):
-            if curved[row]:
+            if counted[row] == LM_STEP:
                 square += target[row] * target[row]
+            elif counted[row] == LM_ERROR:
+                uncapped = row_scale[row] * gain[row] * error[row]
+                square += uncapped * uncapped
         scale[level] = 1.0 if square == 0.0 else \
             damping / math.sqrt(damping * damping + lm_damping * square)
         if scale[level] < 1.0:
@@ -840,6 +851,13 @@ def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
 
 
 HIERARCHIES = ("svd", "qp")
+
+
+def _lm_counts(task) -> int:
+    """What LM damping counts of the task's rows (LM_NONE, LM_STEP, LM_ERROR)."""
+    if isinstance(task, PostureTask):
+        return LM_NONE
+    return LM_ERROR if isinstance(task, ComTask) else LM_STEP
 
 
 def _with_shortfalls(step_residuals, inequalities, dq) -> np.ndarray:
