@@ -26,8 +26,10 @@ def talos():
     return Robot.load("talos")
 
 
-def talos_run(robot, scenario, lm_damping, dt=DT, hierarchy="svd"):
-    """(dq per step, StepResult of the last step) on feet > CoM > both hands > posture."""
+def talos_run(robot, scenario, lm_damping, dt=DT, hierarchy="svd", com_ahead=0.0,
+              steps=STEPS, watched="right_hand"):
+    """(dq per step, the `watched` task's error per step, StepResult of the last step) on
+    feet > CoM > both hands > posture, the CoM's target com_ahead m in front of its start."""
     specs = parse_stack_yaml(TALOS_LEVEL_STACK)
     start = bench_start(robot)
     targets = bench_targets(robot, specs, start, GROUP_SCENARIOS[scenario])
@@ -35,13 +37,14 @@ def talos_run(robot, scenario, lm_damping, dt=DT, hierarchy="svd"):
     solver.set_stack(specs, start)
     for spec in specs:
         solver.task(spec.name).target = targets[spec.name]
-    q, steps, errors = start, [], []
-    for _ in range(STEPS):
+    solver.task("com").target = solver.task("com").target + [com_ahead, 0.0, 0.0]
+    q, variations, errors = start, [], []
+    for _ in range(steps):
         result = solver.step(q)
         q = result.q
-        steps.append(result.dq)
-        errors.append(result.task_errors["right_hand"])
-    return np.array(steps), np.array(errors), result
+        variations.append(result.dq)
+        errors.append(result.task_errors[watched])
+    return np.array(variations), np.array(errors), result
 
 
 def chatter(steps) -> float:
@@ -163,26 +166,6 @@ def test_a_support_polygon_out_of_reach_does_not_make_the_joints_chatter(talos):
     assert max(result.task_errors["left_foot"], result.task_errors["right_foot"]) < 1e-3
 
 
-def com_run(robot, hierarchy, ahead, lm_damping, steps):
-    """(dq per step, the CoM task's error per step) with the CoM's target `ahead` m in
-    front of its start, the hands forward, on feet > CoM > both hands > posture."""
-    specs = parse_stack_yaml(TALOS_LEVEL_STACK)
-    start = bench_start(robot)
-    targets = bench_targets(robot, specs, start, GROUP_SCENARIOS["hands forward"])
-    solver = PIKSolver(robot, dt=DT, hierarchy=hierarchy, lm_damping=lm_damping)
-    solver.set_stack(specs, start)
-    for spec in specs:
-        solver.task(spec.name).target = targets[spec.name]
-    solver.task("com").target = solver.task("com").target + [ahead, 0.0, 0.0]
-    q, variations, errors = start, [], []
-    for _ in range(steps):
-        result = solver.step(q)
-        q = result.q
-        variations.append(result.dq)
-        errors.append(result.task_errors["com"])
-    return np.array(variations), np.array(errors)
-
-
 @pytest.mark.parametrize("hierarchy", ["svd", "qp"])
 def test_a_com_target_out_of_reach_does_not_make_the_joints_chatter(talos, hierarchy):
     """The CoM's target 3 m ahead of the feet. Its step is capped at ComTask.max_step
@@ -193,8 +176,10 @@ def test_a_com_target_out_of_reach_does_not_make_the_joints_chatter(talos, hiera
     gain (0.1 m) away is approached with more damping: 0.2 m ahead, to within 5 mm, the QP
     hierarchy took 19 steps without LM damping, 21 with the capped count, 23 now (the SVD
     one 24 in all three: its velocity limits bind first)."""
-    variations, _ = com_run(talos, hierarchy, 3.0, LM_DAMPING, 2 * STEPS)
+    variations, _, _ = talos_run(talos, "hands forward", LM_DAMPING, hierarchy=hierarchy,
+                                 com_ahead=3.0, steps=2 * STEPS)
     assert chatter(variations) < 2e-3
-    reach = [int(np.argmax(com_run(talos, hierarchy, 0.2, lm_damping, STEPS)[1] < 0.005))
+    reach = [int(np.argmax(talos_run(talos, "hands forward", lm_damping, hierarchy=hierarchy,
+                                     com_ahead=0.2, watched="com")[1] < 0.005))
              for lm_damping in (0.0, LM_DAMPING)]
     assert min(reach) > 0 and reach[1] <= 1.3 * reach[0], reach
