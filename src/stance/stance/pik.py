@@ -48,16 +48,10 @@ from .qp_hierarchy import (BINDING_TOLERANCE, Inequalities, QPHierarchy, cascade
 from .robot import RobotModelError
 from .stack import StackError, TaskSpec, parse_stack_yaml, short_repr, validate_stack
 from .swing import NO_BALL, NO_GROUP, BallLimit, JointGroupLimit, ball_fix, group_fix
-from .tasks import (ComTask, FrameTask, FrameTaskBatch, PostureTask, SupportTask,
+from .tasks import (LM_ERROR, LM_STEP, ComTask, FrameTask, FrameTaskBatch, SupportTask,
                     capped_steps, make_task, step_cap_groups)
 
 
-# What Levenberg-Marquardt damping counts of a task's rows (PIKSolver module docstring,
-# step 2): nothing (a posture: it does not curve), the capped step target, or gain x error
-# uncapped (the CoM: capped at ComTask.max_step, a target out of reach left a 2-row level
-# lambda 0.2, and the whole body swung at its velocity bounds around its farthest reach,
-# as with a support polygon out of reach)
-LM_NONE, LM_STEP, LM_ERROR = 0, 1, 2
 MET_RELATIVE = 1e-3   # a level whose step residual is below this x its step is met,
 MET_ABSOLUTE = 1e-12  # or below this (m, rad): rounding, on a level already on target
 LM_DAMPING = 100.0    # lm_damping: Talos' hands out of reach hold still, reached ones
@@ -133,7 +127,7 @@ class _Layout:
     row_group: np.ndarray       # step cap group per row (Task.step_caps)
     group_cap: np.ndarray       # norm cap per group (task units per step)
     error_norms: np.ndarray     # filled per step: |e| per task, then |sqrt(w) e| per level
-    lm_rows: np.ndarray         # per row, what LM damping counts (LM_NONE, LM_STEP, LM_ERROR)
+    lm_rows: np.ndarray         # per row, what LM damping counts (its task's lm_counts)
     level_scale: np.ndarray     # filled per step: damping / lambda per level (LM damping)
     support_tasks: list         # (enabled SupportTask, its level index): inequality rows
 
@@ -511,7 +505,7 @@ class PIKSolver:
             starts.append(row)
             scales.extend([scale] * task.dimension)
             gains.extend([task.gain] * task.dimension)
-            lm_counts.extend([_lm_counts(task)] * task.dimension)
+            lm_counts.extend([task.lm_counts] * task.dimension)
             row += task.dimension
         if priorities:
             offsets.append(row)
@@ -851,13 +845,6 @@ def _level_residuals(jacobian, target, offsets, dq) -> np.ndarray:
 
 
 HIERARCHIES = ("svd", "qp")
-
-
-def _lm_counts(task) -> int:
-    """What LM damping counts of the task's rows (LM_NONE, LM_STEP, LM_ERROR)."""
-    if isinstance(task, PostureTask):
-        return LM_NONE
-    return LM_ERROR if isinstance(task, ComTask) else LM_STEP
 
 
 def _with_shortfalls(step_residuals, inequalities, dq) -> np.ndarray:

@@ -19,6 +19,14 @@ from scipy.spatial import ConvexHull, QhullError
 from .stack import AXES, TaskSpec, short_repr
 
 
+# What Levenberg-Marquardt damping counts of a task's rows (Task.lm_counts; PIKSolver
+# module docstring, step 2): nothing (a posture: it does not curve), the capped step
+# target, or gain x error uncapped (the CoM: capped at ComTask.max_step, a target out of
+# reach left a 2-row level lambda 0.2, and the whole body swung at its velocity bounds
+# around its farthest reach, as with a support polygon out of reach)
+LM_NONE, LM_STEP, LM_ERROR = 0, 1, 2
+
+
 class TargetError(ValueError):
     """A task target is malformed (non-finite, wrong size, unknown joint, bad quaternion)."""
 
@@ -186,6 +194,7 @@ class Task:
     `write(robot, q, jacobian, error)` on kinematics already computed in robot.data."""
 
     max_step = 0.05  # norm cap of one step's task correction, task units
+    lm_counts = LM_STEP  # what LM damping counts of its rows (LM_NONE, LM_STEP, LM_ERROR)
 
     def __init__(self, spec: TaskSpec, robot):
         self.spec = spec
@@ -342,6 +351,7 @@ class ComTask(Task):
     """Center of mass position in the world frame (m); target a 3-vector."""
 
     max_step = 0.02  # m per IK step
+    lm_counts = LM_ERROR
 
     def __init__(self, spec: TaskSpec, robot):
         super().__init__(spec, robot)
@@ -458,6 +468,7 @@ class PostureTask(Task):
     """Actuated joint positions (rad); the target is a full configuration vector."""
 
     max_step = 0.05  # rad per IK step (norm over all joints)
+    lm_counts = LM_NONE
 
     def __init__(self, spec: TaskSpec, robot):
         super().__init__(spec, robot)
