@@ -17,7 +17,7 @@ from stance.pik import PIKSolver
 from stance.qp_hierarchy import Inequalities, QPHierarchy
 from stance.robot import Robot
 from stance.stack import StackError, parse_stack_yaml
-from stance.tasks import TargetError, frame_rectangle_corners
+from stance.tasks import ComTask, TargetError, frame_rectangle_corners
 from stance_tools.bench import bench_start
 
 DAMPING = 1e-3
@@ -254,6 +254,29 @@ def test_talos_com_outside_the_polygon_comes_back_at_the_task_gain(talos):
     assert all(later <= earlier + 1e-6 for earlier, later in zip(distances, distances[1:]))
     assert distances[1] == pytest.approx(0.8 * distances[0], rel=0.05)   # gain 0.2
     assert com_distance_outside(talos, q, shifted) < 1e-4
+
+
+@pytest.mark.parametrize("behind", [0.05, 0.5, 3.0])
+def test_an_edge_asks_back_gain_x_the_distance_at_most_max_step(talos, behind):
+    """The CoM `behind` m behind a polygon's back edge: that edge asks it back by gain x
+    the distance per step, at most SupportTask.max_step (a CoM task's cap), while LM
+    damping counts the whole gain x distance; the edges it is inside ask nothing back."""
+    q = bench_start(talos)
+    solver = PIKSolver(talos, hierarchy="qp")
+    solver.set_stack(parse_stack_yaml(SUPPORT_STACK), q)
+    task = solver.task("balance")
+    solver.compute_kinematics(q)
+    com_x = talos.data.com[0][0]
+    task.set_target(np.array([[1.0, -1.0], [2.0, -1.0], [2.0, 1.0], [1.0, 1.0]])
+                    + [com_x + behind - 1.0, 0.0])
+    rows, room, shortfall = (np.empty((4, talos.model.nv)), np.empty(4), np.empty(4))
+    task.write_inequalities(talos, rows, room, shortfall)
+    back = int(np.argmin(room))
+    assert task.max_step == ComTask.max_step == 0.02
+    assert shortfall[back] == pytest.approx(task.gain * behind, rel=1e-9)
+    assert room[back] == pytest.approx(-min(task.gain * behind, task.max_step), rel=1e-9)
+    others = np.arange(4) != back
+    assert np.all(room[others] > 0.0) and np.all(shortfall[others] == 0.0)
 
 
 def test_support_needs_the_qp_hierarchy(talos):

@@ -6,7 +6,8 @@ One IK step from configuration q:
      sqrt(weight), targets = the tasks' capped steps); each level's damped least squares
      lambda is lambda_k^2 = damping^2 + lm_damping |e_k|^2, e_k the level's target rows of
      the tasks that curve (all but posture; a CoM task's uncapped, gain x error) and the
-     shortfalls of its inequality rows (a support polygon's edges the CoM is outside of):
+     uncapped returns its inequality rows ask (gain x the CoM's distance outside a
+     support polygon's edges):
      Levenberg-Marquardt damping as Pink's lm_damping (Sugihara, "Solvability-unconcerned
      inverse kinematics by the Levenberg-Marquardt method", 2011), large while a target is
      far or out of reach, so an unreachable target does not make the joints chatter, and
@@ -274,8 +275,8 @@ class PIKSolver:
         self.compute_kinematics(q)
         jacobian, target, error = self._fill_levels(q)
         offsets = self._layout.offsets
-        inequalities = self._support_inequalities()
-        level_scale = self._lm_scale(jacobian, target, inequalities)
+        inequalities, shortfalls = self._support_inequalities()
+        level_scale = self._lm_scale(jacobian, target, inequalities, shortfalls)
         if inequalities is not None:
             inequalities = inequalities._replace(weight=level_scale[inequalities.level])
 
@@ -330,18 +331,18 @@ class PIKSolver:
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
                           decide_binding=binding)
 
-    def _lm_scale(self, jacobian, target, inequalities) -> np.ndarray:
+    def _lm_scale(self, jacobian, target, inequalities, shortfalls) -> np.ndarray:
         """Each level's factor damping / lambda_k (module docstring, step 2; 1 without LM
         damping), its rows of the stacked Jacobian and target scaled by it in place;
-        inequalities: the support tasks' (their shortfalls count in lambda_k), or None."""
+        inequalities: the support tasks', or None; shortfalls: per row of theirs, the
+        uncapped return that counts in its level's lambda_k (m)."""
         layout = self._layout
         scale = layout.level_scale
         if self.lm_damping:
             shortfall = _NO_SHORTFALL
             if inequalities is not None:
                 shortfall = np.zeros(len(scale))
-                np.add.at(shortfall, inequalities.level,
-                          np.minimum(inequalities.room, 0.0) ** 2)
+                np.add.at(shortfall, inequalities.level, shortfalls ** 2)
             _lm_scale_levels(jacobian, target, self._error, layout.row_gain,
                              layout.row_scale, layout.offsets, layout.lm_rows, self.damping,
                              self.lm_damping, shortfall, scale)
@@ -575,22 +576,26 @@ class PIKSolver:
                 for level, residual in enumerate(step_residuals[:len(offsets) - 1])]
 
     def _support_inequalities(self):
-        """The enabled support tasks' Inequalities at robot.data's kinematics (None without
-        a polygon): each polygon edge a row of its task's level."""
+        """(Inequalities, shortfalls) of the enabled support tasks at robot.data's
+        kinematics ((None, None) without a polygon): each polygon edge a row of its task's
+        level, and the uncapped return LM damping counts of it (m,
+        SupportTask.write_inequalities)."""
         tasks = [(task, level) for task, level in self._layout.support_tasks
                  if task.edge_count]
         if not tasks:
-            return None
+            return None, None
         count = sum(task.edge_count for task, _ in tasks)
         rows, room = np.empty((count, self.robot.model.nv)), np.empty(count)
+        shortfalls = np.empty(count)
         levels, labels, start = [], [], 0
         for task, level in tasks:
             end = start + task.edge_count
-            task.write_inequalities(self.robot, rows[start:end], room[start:end])
+            task.write_inequalities(self.robot, rows[start:end], room[start:end],
+                                    shortfalls[start:end])
             levels += [level] * task.edge_count
             labels += [f"{task.name} edge {edge}" for edge in range(task.edge_count)]
             start = end
-        return Inequalities(rows, room, np.array(levels, dtype=np.int64), labels)
+        return Inequalities(rows, room, np.array(levels, dtype=np.int64), labels), shortfalls
 
     def _dq_bounds(self, q):
         """Per-DoF bounds on dq (nv each): the 1-DoF joint limits when the strategy enforces

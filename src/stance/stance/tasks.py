@@ -401,12 +401,14 @@ class SupportTask(Task):
     (outward unit normal n_e, n_e . p <= b_e inside) gives one row of the level's
     inequalities n_e^T J_com,xy dq <= room_e, room_e = b_e - n_e . c_xy where that is >= 0;
     a CoM outside the edge must come back by gain x its distance (room_e < 0), the way a
-    task corrects gain x its error per step. The QP hierarchy keeps these rows from the
-    task's level down (qp_hierarchy.Inequalities); its error is the largest distance
-    outside an edge line (m, 0 inside).
+    task corrects gain x its error per step, at most max_step per step as a CoM task's
+    step; LM damping counts the uncapped return (its shortfall), as a CoM task's error: a
+    polygon out of reach holds the CoM as a CoM target out of reach does. The QP
+    hierarchy keeps these rows from the task's level down (qp_hierarchy.Inequalities);
+    its error is the largest distance outside an edge line (m, 0 inside).
     """
 
-    max_step = 0.0  # no equality rows to cap
+    max_step = ComTask.max_step  # m per IK step: the largest return asked of the CoM
 
     def __init__(self, spec: TaskSpec, robot):
         super().__init__(spec, robot)
@@ -444,21 +446,21 @@ class SupportTask(Task):
     def write(self, robot, q, jacobian, error) -> None:
         """No equality rows."""
 
-    def write_inequalities(self, robot, rows: np.ndarray, room: np.ndarray) -> None:
-        """Fill edge_count rows (nv each) and their room (m) at robot.data's CoM."""
+    def write_inequalities(self, robot, rows: np.ndarray, room: np.ndarray,
+                           shortfall: np.ndarray) -> None:
+        """Fill edge_count rows (nv each), their room (m) and the return LM damping counts
+        per edge (m: gain x distance outside, uncapped; 0 inside) at robot.data's CoM."""
         data = robot.data
         rows[:] = self._normals @ data.Jcom[:2]
-        room[:] = self._room(data.com[0][:2])
+        inside = self._offsets - self._normals @ data.com[0][:2]
+        shortfall[:] = self.gain * np.maximum(-inside, 0.0)
+        room[:] = np.where(inside >= 0.0, inside, -np.minimum(shortfall, self.max_step))
 
     def distance_outside(self, robot) -> float:
         """Largest distance of the CoM's ground projection outside an edge line (m)."""
         if not self.edge_count:
             return 0.0
         return float(max(0.0, np.max(self._normals @ robot.data.com[0][:2] - self._offsets)))
-
-    def _room(self, com_xy) -> np.ndarray:
-        room = self._offsets - self._normals @ com_xy
-        return np.where(room >= 0.0, room, self.gain * room)
 
     def current_pose(self, robot):
         return pin.SE3(np.eye(3), robot.data.com[0].copy())
