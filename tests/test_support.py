@@ -269,14 +269,14 @@ def test_an_edge_asks_back_gain_x_the_distance_at_most_max_step(talos, behind):
     com_x = talos.data.com[0][0]
     task.set_target(np.array([[1.0, -1.0], [2.0, -1.0], [2.0, 1.0], [1.0, 1.0]])
                     + [com_x + behind - 1.0, 0.0])
-    rows, room, shortfall = (np.empty((4, talos.model.nv)), np.empty(4), np.empty(4))
-    task.write_inequalities(talos, rows, room, shortfall)
+    rows, room, returns = (np.empty((4, talos.model.nv)), np.empty(4), np.empty(4))
+    task.write_inequalities(talos, rows, room, returns)
     back = int(np.argmin(room))
     assert task.max_step == ComTask.max_step == 0.02
-    assert shortfall[back] == pytest.approx(task.gain * behind, rel=1e-9)
+    assert returns[back] == pytest.approx(task.gain * behind, rel=1e-9)
     assert room[back] == pytest.approx(-min(task.gain * behind, task.max_step), rel=1e-9)
     others = np.arange(4) != back
-    assert np.all(room[others] > 0.0) and np.all(shortfall[others] == 0.0)
+    assert np.all(room[others] > 0.0) and np.all(returns[others] == 0.0)
 
 
 def test_support_needs_the_qp_hierarchy(talos):

@@ -275,8 +275,8 @@ class PIKSolver:
         self.compute_kinematics(q)
         jacobian, target, error = self._fill_levels(q)
         offsets = self._layout.offsets
-        inequalities, shortfalls = self._support_inequalities()
-        level_scale = self._lm_scale(jacobian, target, inequalities, shortfalls)
+        inequalities, returns = self._support_inequalities()
+        level_scale = self._lm_scale(jacobian, target, inequalities, returns)
         if inequalities is not None:
             inequalities = inequalities._replace(weight=level_scale[inequalities.level])
 
@@ -331,10 +331,10 @@ class PIKSolver:
                           solve_time=time.perf_counter() - start, velocity_scale=scale,
                           decide_binding=binding)
 
-    def _lm_scale(self, jacobian, target, inequalities, shortfalls) -> np.ndarray:
+    def _lm_scale(self, jacobian, target, inequalities, returns) -> np.ndarray:
         """Each level's factor damping / lambda_k (module docstring, step 2; 1 without LM
         damping), its rows of the stacked Jacobian and target scaled by it in place;
-        inequalities: the support tasks', or None; shortfalls: per row of theirs, the
+        inequalities: the support tasks', or None; returns: per row of theirs, the
         uncapped return that counts in its level's lambda_k (m)."""
         layout = self._layout
         scale = layout.level_scale
@@ -342,7 +342,7 @@ class PIKSolver:
             shortfall = _NO_SHORTFALL
             if inequalities is not None:
                 shortfall = np.zeros(len(scale))
-                np.add.at(shortfall, inequalities.level, shortfalls ** 2)
+                np.add.at(shortfall, inequalities.level, returns ** 2)
             _lm_scale_levels(jacobian, target, self._error, layout.row_gain,
                              layout.row_scale, layout.offsets, layout.lm_rows, self.damping,
                              self.lm_damping, shortfall, scale)
@@ -576,7 +576,7 @@ class PIKSolver:
                 for level, residual in enumerate(step_residuals[:len(offsets) - 1])]
 
     def _support_inequalities(self):
-        """(Inequalities, shortfalls) of the enabled support tasks at robot.data's
+        """(Inequalities, returns) of the enabled support tasks at robot.data's
         kinematics ((None, None) without a polygon): each polygon edge a row of its task's
         level, and the uncapped return LM damping counts of it (m,
         SupportTask.write_inequalities)."""
@@ -586,16 +586,16 @@ class PIKSolver:
             return None, None
         count = sum(task.edge_count for task, _ in tasks)
         rows, room = np.empty((count, self.robot.model.nv)), np.empty(count)
-        shortfalls = np.empty(count)
+        returns = np.empty(count)
         levels, labels, start = [], [], 0
         for task, level in tasks:
             end = start + task.edge_count
             task.write_inequalities(self.robot, rows[start:end], room[start:end],
-                                    shortfalls[start:end])
+                                    returns[start:end])
             levels += [level] * task.edge_count
             labels += [f"{task.name} edge {edge}" for edge in range(task.edge_count)]
             start = end
-        return Inequalities(rows, room, np.array(levels, dtype=np.int64), labels), shortfalls
+        return Inequalities(rows, room, np.array(levels, dtype=np.int64), labels), returns
 
     def _dq_bounds(self, q):
         """Per-DoF bounds on dq (nv each): the 1-DoF joint limits when the strategy enforces

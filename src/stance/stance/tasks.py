@@ -402,10 +402,10 @@ class SupportTask(Task):
     inequalities n_e^T J_com,xy dq <= room_e, room_e = b_e - n_e . c_xy where that is >= 0;
     a CoM outside the edge must come back by gain x its distance (room_e < 0), the way a
     task corrects gain x its error per step, at most max_step per step as a CoM task's
-    step; LM damping counts the uncapped return (its shortfall), as a CoM task's error: a
-    polygon out of reach holds the CoM as a CoM target out of reach does. The QP
-    hierarchy keeps these rows from the task's level down (qp_hierarchy.Inequalities);
-    its error is the largest distance outside an edge line (m, 0 inside).
+    step; LM damping counts the uncapped return, as a CoM task's error: a polygon out of
+    reach holds the CoM as a CoM target out of reach does. The QP hierarchy keeps these
+    rows from the task's level down (qp_hierarchy.Inequalities); its error is the largest
+    distance outside an edge line (m, 0 inside).
     """
 
     max_step = ComTask.max_step  # m per IK step: the largest return asked of the CoM
@@ -447,14 +447,14 @@ class SupportTask(Task):
         """No equality rows."""
 
     def write_inequalities(self, robot, rows: np.ndarray, room: np.ndarray,
-                           shortfall: np.ndarray) -> None:
+                           returns: np.ndarray) -> None:
         """Fill edge_count rows (nv each), their room (m) and the return LM damping counts
         per edge (m: gain x distance outside, uncapped; 0 inside) at robot.data's CoM."""
         data = robot.data
         rows[:] = self._normals @ data.Jcom[:2]
         inside = self._offsets - self._normals @ data.com[0][:2]
-        shortfall[:] = self.gain * np.maximum(-inside, 0.0)
-        room[:] = np.where(inside >= 0.0, inside, -np.minimum(shortfall, self.max_step))
+        returns[:] = self.gain * np.maximum(-inside, 0.0)
+        room[:] = np.where(inside >= 0.0, inside, -np.minimum(returns, self.max_step))
 
     def distance_outside(self, robot) -> float:
         """Largest distance of the CoM's ground projection outside an edge line (m)."""
