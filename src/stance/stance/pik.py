@@ -339,13 +339,13 @@ class PIKSolver:
         layout = self._layout
         scale = layout.level_scale
         if self.lm_damping:
-            shortfall = _NO_SHORTFALL
+            returned = _NO_RETURNS
             if inequalities is not None:
-                shortfall = np.zeros(len(scale))
-                np.add.at(shortfall, inequalities.level, returns ** 2)
+                returned = np.zeros(len(scale))
+                np.add.at(returned, inequalities.level, returns ** 2)
             _lm_scale_levels(jacobian, target, self._error, layout.row_gain,
                              layout.row_scale, layout.offsets, layout.lm_rows, self.damping,
-                             self.lm_damping, shortfall, scale)
+                             self.lm_damping, returned, scale)
         return scale
 
     def _binding_names(self, names, dq, fixed, fixed_dq, h) -> list:
@@ -813,14 +813,14 @@ def _largest_fraction(used: np.ndarray, added: np.ndarray) -> float:
 
 @numba.njit(cache=True)
 def _lm_scale_levels(jacobian, target, error, gain, row_scale, offsets, counted, damping,
-                     lm_damping, shortfall, scale):
+                     lm_damping, returned, scale):
     """scale[k] = damping / lambda_k, lambda_k^2 = damping^2 + lm_damping |e_k|^2 with e_k
     level k's rows as `counted` says (LM_STEP: the target, LM_ERROR: sqrt(weight) x gain x
-    error, uncapped) and the shortfalls of its inequality rows (shortfall[k]: the sum of
-    their squares; empty: none; PIKSolver module docstring, step 2); level k's rows of
-    jacobian and target multiplied by it (all in place)."""
+    error, uncapped) and the uncapped returns its inequality rows ask (returned[k]: the
+    sum of their squares; empty: none; PIKSolver module docstring, step 2); level k's rows
+    of jacobian and target multiplied by it (all in place)."""
     for level in range(len(offsets) - 1):
-        square = shortfall[level] if len(shortfall) else 0.0
+        square = returned[level] if len(returned) else 0.0
         for row in range(offsets[level], offsets[level + 1]):
             if counted[row] == LM_STEP:
                 square += target[row] * target[row]
@@ -884,7 +884,7 @@ def _with_violated_rows(jacobian, target, offsets, inequalities) -> tuple:
             np.concatenate([[0], np.cumsum(sizes)]).astype(offsets.dtype))
 
 
-_NO_SHORTFALL = np.zeros(0)     # _lm_scale_levels' shortfalls without inequality rows
+_NO_RETURNS = np.zeros(0)       # _lm_scale_levels' returns without inequality rows
 # _clamping_loop's cascade_state (QPHierarchy.cascade_state) for a hierarchy without cascades
 _NO_CASCADE_STATE = empty_cascade_state(0, 0, np.zeros(1, dtype=np.int64))
 

@@ -450,9 +450,8 @@ class SupportTask(Task):
                            returns: np.ndarray) -> None:
         """Fill edge_count rows (nv each), their room (m) and the return LM damping counts
         per edge (m: gain x distance outside, uncapped; 0 inside) at robot.data's CoM."""
-        data = robot.data
-        rows[:] = self._normals @ data.Jcom[:2]
-        inside = self._offsets - self._normals @ data.com[0][:2]
+        rows[:] = self._normals @ robot.data.Jcom[:2]
+        inside = self._inside(robot)
         returns[:] = self.gain * np.maximum(-inside, 0.0)
         room[:] = np.where(inside >= 0.0, inside, -np.minimum(returns, self.max_step))
 
@@ -460,7 +459,11 @@ class SupportTask(Task):
         """Largest distance of the CoM's ground projection outside an edge line (m)."""
         if not self.edge_count:
             return 0.0
-        return float(max(0.0, np.max(self._normals @ robot.data.com[0][:2] - self._offsets)))
+        return float(max(0.0, -np.min(self._inside(robot))))
+
+    def _inside(self, robot) -> np.ndarray:
+        """Per edge, how far robot.data's CoM lies inside its line (m, < 0 outside)."""
+        return self._offsets - self._normals @ robot.data.com[0][:2]
 
     def current_pose(self, robot):
         return pin.SE3(np.eye(3), robot.data.com[0].copy())
