@@ -42,10 +42,14 @@ CONE = EllipticCone(1.0, 0.6)
 # Convex pentagon in the upper hemisphere (its gnomonic image is a convex planar polygon).
 PENTAGON = SphericalPolygon([direction(angle, azimuth) for angle, azimuth in
                              [(1.1, 0.0), (0.9, 1.3), (0.7, 2.6), (1.0, 3.8), (0.8, 5.0)]])
-DOMAINS = {"cone": CONE, "polygon": PENTAGON}
 # Star-shaped around z, not convex: every other vertex pulled in (reflex vertices).
 STAR = SphericalPolygon([direction(0.8 if k % 2 == 0 else 0.3, k * np.pi / 4)
                          for k in range(8)])
+# The same shape, wide enough that a swing 0.3 rad inside its first edge's middle is
+# nearest that edge (in STAR it is nearer the next ones): the damping tests' star.
+WIDE_STAR = SphericalPolygon([direction(1.2 if k % 2 == 0 else 0.7, k * np.pi / 4)
+                              for k in range(8)])
+DOMAINS = {"cone": CONE, "polygon": PENTAGON, "star": WIDE_STAR}
 
 
 def polygon_boundary(polygon, samples_per_edge=4000) -> np.ndarray:
