@@ -335,3 +335,46 @@ def test_a_hip_turned_past_a_half_turn_comes_back(talos, groups, beyond, hierarc
     assert excess <= BOUND_TOLERANCE
     assert swing_excess(model, q) <= SWING_TOLERANCE
     assert twist_excess(model, q) <= BOUND_TOLERANCE
+
+
+@pytest.mark.parametrize("hierarchy", ["svd", "qp"])
+@pytest.mark.parametrize("strategy", ["progressive", "clamping"])
+def test_a_shoulder_raised_past_its_cone_is_met_from_inside_and_slides(talos, groups,
+                                                                      strategy, hierarchy):
+    """The soaks' hand targets leave the shoulders far from their cones (the arm's other
+    joints reach them), so here a posture target raises the left arm sideways past its cone
+    (arm_left_2 toward 2.88 rad, the cone's sideways half-axis 2.6): the shoulder meets the
+    limit from inside. Progressive clamping damps it on the way (h through (0, 1), steps
+    toward the limit shrinking as h grows), clamping only on it (h 0 or 1); neither leaves
+    the cone, and on it the swing slides on toward the target's side (Fig. 6)."""
+    model = next(model for model in groups if model.name == "left_shoulder")
+    solver = PIKSolver(talos, strategy=strategy, limit_models=groups, hierarchy=hierarchy)
+    solver.set_stack([TaskSpec("right_foot", "pose", frame="right_sole_link", priority=0),
+                      TaskSpec("left_foot", "pose", frame="left_sole_link", priority=0),
+                      TaskSpec("com", "com", priority=1, axes=("x", "y"), gain=0.2),
+                      TaskSpec("posture", "posture", priority=2, gain=0.1)],
+                     talos.initial_configuration())
+    solver.task("posture").set_joint_targets(talos, {"arm_left_1_joint": 0.0,
+                                                     "arm_left_2_joint": 2.88})
+    swing_h = solver.limited_dof_names.index("left_shoulder_swing")
+    q, swings, h = talos.initial_configuration(), [], []
+    for _ in range(150):
+        result = solver.step(q)
+        q = result.q
+        swings.append(swing_twist(model.rotation(q))[0])
+        h.append(result.damping[swing_h])
+    distance = np.array([model.domain.signed_distance(s) for s in swings])
+    h = np.array(h)
+    assert distance.min() >= -SWING_TOLERANCE
+    on_limit = np.flatnonzero(np.abs(distance) < 1e-9)
+    assert len(on_limit) > 50 and on_limit[-1] == len(distance) - 1, distance[-5:]
+    slid = np.linalg.norm(swings[on_limit[-1]] - swings[on_limit[0]])
+    assert slid > 0.01, slid
+    damped = np.flatnonzero((h > 0.0) & (h < 1.0))
+    if strategy == "clamping":
+        assert len(damped) == 0, h[damped]
+        return
+    assert len(damped) >= 5 and damped[-1] < on_limit[0], (damped, on_limit[0])
+    assert np.all(np.diff(h[damped]) > 0.0), h[damped]
+    approach = -np.diff(distance[damped[0]:damped[-1] + 1])
+    assert np.all(approach > 0.0) and np.all(np.diff(approach) < 0.0), approach
