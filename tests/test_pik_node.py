@@ -338,7 +338,9 @@ def test_stance_teleop_path_moves_the_robot(pik, tmp_path):
      "stance/data/mannequin_limits.yaml; stack file: "),
     (["-p", "limits_file:=talos"],
      lambda status: status.joint_names.count("leg_left_2_joint") == 1
-     and "arm_right_3_joint" in status.joint_names,
+     and "arm_right_3_joint" in status.joint_names
+     and {f"{group}_{part}" for group in ("left_hip", "right_shoulder")
+          for part in ("swing", "twist")} <= set(status.joint_names),
      "stance/data/talos_limits.yaml; stack file: "),
 ], ids=["qp hierarchy", "mannequin with swing limits", "talos with joint groups"])
 def test_node_variants_run_and_report(tmp_path, parameters, check, logged):
