@@ -24,7 +24,9 @@ One IK step from configuration q:
      are dropped, so a lower level never slows a higher one (each level's share lies in the
      nullspace of the ones above it); without per-level shares (QP hierarchy: velocity
      bounds are its inequalities), or when the fixed variations alone exceed the limits, dq
-     is scaled uniformly;
+     is scaled uniformly. Dropping lower levels can turn a joint toward a limit the full
+     solution moved it away from, so the limit pass of step 3 runs on the saturated dq
+     too, and a DoF it fixes resumes the loop (then saturation again);
   5. q_next = integrate(q, dq) on the configuration manifold.
 """
 
@@ -301,6 +303,12 @@ class PIKSolver:
             iterations += more
 
         dq, scale = self._within_velocity_limits(solution, fixed_dq)
+        while scale < 1.0 and self.strategy.enforces_limits and \
+                self._limit_pass(q, dq, fixed, fixed_dq, h):    # step 4, saturated dq
+            solution, more = self._clamping(q, jacobian, target, offsets, bounds, fixed,
+                                            fixed_dq, h, inequalities=inequalities)
+            iterations += more
+            dq, scale = self._within_velocity_limits(solution, fixed_dq)
         step_residuals = solution.step_residuals if scale == 1.0 else \
             _level_residuals(jacobian, target, offsets, dq)
         unsaturated = None if scale == 1.0 else solution.step_residuals
@@ -383,11 +391,16 @@ class PIKSolver:
                                                     fixed_dq[index], bounds=solve_bounds,
                                                     **restart, **options)
             iterations += 1
-            changed = False
-            for model in self.limit_models:
-                changed |= self.strategy.fix(model, q, solution.dq, fixed, fixed_dq, h)
-            if not changed:
+            if not self._limit_pass(q, solution.dq, fixed, fixed_dq, h):
                 return solution, iterations
+
+    def _limit_pass(self, q, dq, fixed, fixed_dq, h) -> bool:
+        """Every limit model's decision on the variation dq (nv) from q, through the
+        strategy, written in place into fixed, fixed_dq and h; True if it fixed a DoF."""
+        changed = False
+        for model in self.limit_models:
+            changed |= self.strategy.fix(model, q, dq, fixed, fixed_dq, h)
+        return changed
 
     def _compiled_clamping(self, q, jacobian, target, offsets, fixed, fixed_dq, h,
                            bounds=None):
