@@ -61,7 +61,7 @@ SHEET_PANELS = 12          # stances drawn at most on the contact sheet
 VELOCITY_SCALE = 0.15
 PLANNER_WORKERS = min(2, os.cpu_count() or 1)
 SCENARIO_ALIASES = {"chair": "chair_table"}   # the name for the chair escape
-# Scenes whose default time law is time-optimal: the chair plan's 90 transitions take about
+# Scenes whose default time law is time-optimal: the chair plan's 59 transitions take about
 # 3 minutes at VELOCITY_SCALE time-optimally, over 15 minutes with the sinusoidal profile
 # under the acceleration bound.
 TIME_OPTIMAL_SCENES = ("chair_table",)
