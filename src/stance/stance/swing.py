@@ -775,11 +775,10 @@ def group_fix(group, q, dq, progressive, fixed, fixed_dq, h):
         return False
     angles, variation = np.empty(count), np.empty(count)
     movable = np.empty(count, dtype=np.bool_)
-    moving = 0.0
+    moving = 0.0        # every joint's, fixed ones too: theirs may turn the group out
     for j in range(count):
         angles[j], variation[j], movable[j] = q[q_index[j]], dq[v_index[j]], not fixed[v_index[j]]
-        if movable[j]:
-            moving += variation[j] * variation[j]
+        moving += variation[j] * variation[j]
     rotation = _group_rotation(placements, axis_index, angles)[0]
     s, theta = swing_twist(rotation)
     distance = _domain_distance(geometry, s)
